@@ -1,0 +1,202 @@
+"""Demonstration sets: the npz file format, validation, and a synthetic demonstrator.
+
+File format (npz, no pickles), one row per recorded control step of every demonstration:
+    s            (T,)   float64  normalized time, per demonstration from 0 to 1
+    eta          (T, 6) float64  relative pose of thesis 5.5: [p_tcp - p_target (m), log(q_ref^-1 q_tcp) (rad)]
+    demo_lengths (D,)   int64    rows per demonstration, in order; sums to T
+    task         str             task name (vkgrl_newton.tasks)
+    psi_ref      float           reference yaw of q_ref used for eta (rad)
+    action_dim   int             4 if roll and pitch were held at the reference, else 6
+    source       str             'synthetic' or the recorder's name (e.g. 'scripted')
+
+The synthetic demonstrator draws task-shaped insertions (align above the target, descend,
+insert or thread, hold) with the initial-state spread of thesis Table 5.2, the 1 mm target
+noise of eq. 5.23 and per-demonstration timing variation. It exists so that the KMP
+pipeline runs and can be inspected before the simulator exists; it is not physics.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..tasks import get_task
+from .pose import pose_to_eta, quat_from_euler_xyz
+
+__all__ = ["DemoSet", "synthetic_demos"]
+
+DEMO_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class DemoSet:
+    s: np.ndarray
+    eta: np.ndarray
+    demo_lengths: np.ndarray
+    task: str
+    psi_ref: float
+    action_dim: int
+    source: str = "synthetic"
+
+    def __post_init__(self):
+        s, eta, lengths = self.s, self.eta, self.demo_lengths
+        if lengths.ndim != 1 or lengths.shape[0] == 0:
+            raise ValueError("demo_lengths: the demonstration set is empty (no demonstrations)")
+        if (lengths < 2).any():
+            raise ValueError(f"demo_lengths: every demonstration needs >= 2 samples, got {lengths.tolist()}")
+        if s.ndim != 1 or eta.ndim != 2 or eta.shape != (s.shape[0], 6):
+            raise ValueError(f"s must be (T,) and eta (T, 6); got s {s.shape}, eta {eta.shape}")
+        if int(lengths.sum()) != s.shape[0]:
+            raise ValueError(f"demo_lengths sum to {int(lengths.sum())} but there are {s.shape[0]} samples")
+        if not (np.isfinite(s).all() and np.isfinite(eta).all()):
+            raise ValueError("s / eta contain NaN or inf")
+        if (s < 0).any() or (s > 1).any():
+            raise ValueError("s: normalized time must lie in [0, 1]")
+        for i, seg in enumerate(np.split(s, np.cumsum(lengths)[:-1])):
+            if (np.diff(seg) < 0).any():
+                raise ValueError(f"s: time decreases inside demonstration {i}")
+        if self.action_dim not in (4, 6):
+            raise ValueError(f"action_dim must be 4 or 6, got {self.action_dim}")
+
+    @property
+    def num_demos(self) -> int:
+        return int(self.demo_lengths.shape[0])
+
+    def split(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per-demonstration (s, eta) pairs."""
+        cuts = np.cumsum(self.demo_lengths)[:-1]
+        return list(zip(np.split(self.s, cuts), np.split(self.eta, cuts)))
+
+    def save(self, path) -> Path:
+        """Write atomically; refuses to overwrite an existing file (demonstrations are user data)."""
+        path = Path(path)
+        if path.exists():
+            raise FileExistsError(f"{path} exists; demonstrations are never overwritten, choose another path")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
+        os.close(fd)
+        try:
+            np.savez(
+                tmp,
+                format_version=np.int64(DEMO_FORMAT_VERSION),
+                s=self.s,
+                eta=self.eta,
+                demo_lengths=self.demo_lengths,
+                task=np.str_(self.task),
+                psi_ref=np.float64(self.psi_ref),
+                action_dim=np.int64(self.action_dim),
+                source=np.str_(self.source),
+            )
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        return path
+
+    @classmethod
+    def load(cls, path) -> "DemoSet":
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"demonstration file {path} does not exist")
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{path}: not a readable npz file ({e})") from None
+        with data:
+            need = ("s", "eta", "demo_lengths", "task", "psi_ref", "action_dim")
+            missing = [k for k in need if k not in data.files]
+            if missing:
+                raise ValueError(f"{path}: not a demonstration file; missing keys {missing}")
+            return cls(
+                s=np.asarray(data["s"], dtype=np.float64),
+                eta=np.asarray(data["eta"], dtype=np.float64),
+                demo_lengths=np.asarray(data["demo_lengths"], dtype=np.int64),
+                task=str(data["task"]),
+                psi_ref=float(data["psi_ref"]),
+                action_dim=int(data["action_dim"]),
+                source=str(data["source"]) if "source" in data.files else "unknown",
+            )
+
+
+def _min_jerk(tau: np.ndarray) -> np.ndarray:
+    tau = np.clip(tau, 0.0, 1.0)
+    return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+
+
+def _blend(s, s0, s1, a, b):
+    """Minimum-jerk move from a to b over s in [s0, s1] (a, b broadcast over trailing dims)."""
+    w = _min_jerk((s - s0) / max(s1 - s0, 1e-9))[:, None]
+    return a + (b - a) * w
+
+
+# Task shapes (m, rad): TCP height above the target frame when hovering, at the end of the
+# motion, and the yaw turned while seating (NutThread threads the nut, 2 mm per turn).
+_SHAPES = {
+    "PegInsert": dict(z_hover=0.037, z_end=0.0074, seat_turn=0.0, align_yaw_to_target=False),
+    "GearMesh": dict(z_hover=0.025, z_end=0.002, seat_turn=0.0, align_yaw_to_target=True),
+    "NutThread": dict(z_hover=0.004, z_end=0.004 - 0.002 * (120.0 / 360.0), seat_turn=math.radians(-120.0),
+                      align_yaw_to_target=False),
+}
+
+
+def synthetic_demos(task: str, num_demos: int = 10, action_dim: int = 6, seed: int = 0) -> DemoSet:
+    """Draw `num_demos` synthetic demonstrations of `task` on its control grid (see module doc)."""
+    spec = get_task(task)
+    if num_demos < 1:
+        raise ValueError(f"num_demos must be >= 1, got {num_demos}")
+    if action_dim not in (4, 6):
+        raise ValueError(f"action_dim must be 4 or 6, got {action_dim}")
+    shape = _SHAPES[spec.name]
+    rng = np.random.default_rng(seed)
+    n = spec.episode_steps + 1
+    s = np.linspace(0.0, 1.0, n)
+    all_eta = []
+    for _ in range(num_demos):
+        target_noise = rng.normal(0.0, 0.001, 3)  # eq. 5.23: the target frame is off by this
+        start = np.array([0.0, 0.0, spec.hand_init_height]) + rng.uniform(-1, 1, 3) * np.array(spec.ee_pos_noise)
+        yaw_half = 0.5 * (spec.ee_yaw_range[1] - spec.ee_yaw_range[0])
+        yaw0 = spec.psi_ref + rng.uniform(-yaw_half, yaw_half)
+        if shape["align_yaw_to_target"]:
+            yaw1 = spec.psi_ref + rng.uniform(*spec.target_yaw_range)
+        else:
+            yaw1 = spec.psi_ref + 0.2 * (yaw0 - spec.psi_ref)  # turns most of the way to the reference
+        s_align = 0.40 + rng.uniform(-0.05, 0.05)
+        s_seat = 0.80 + rng.uniform(-0.05, 0.05)
+        hover = np.array([0.0, 0.0, shape["z_hover"]])
+        end = np.array([0.0, 0.0, shape["z_end"]])
+        pos = np.where(s[:, None] < s_align, _blend(s, 0.0, s_align, start, hover), _blend(s, s_align, s_seat, hover, end))
+        pos = pos - target_noise  # relative to the noisy target frame
+        yaw = np.where(s < s_align, _blend(s, 0.0, s_align, np.array([yaw0]), np.array([yaw1]))[:, 0],
+                       _blend(s, s_align, s_seat, np.array([yaw1]), np.array([yaw1 + shape["seat_turn"]]))[:, 0])
+        if action_dim == 6:
+            tilt0 = rng.uniform(-1, 1, 2) * math.radians(3.0)  # small roll/pitch error, removed while aligning
+            tilt = _blend(s, 0.0, s_align, tilt0, np.zeros(2))
+        else:
+            tilt = np.zeros((n, 2))
+        # sensor-like jitter so every step has some spread: 0.1 mm, 0.1 degree
+        pos = pos + rng.normal(0.0, 1e-4, pos.shape)
+        yaw = yaw + rng.normal(0.0, math.radians(0.1), n)
+        if action_dim == 6:
+            tilt = tilt + rng.normal(0.0, math.radians(0.1), tilt.shape)
+        q_tcp = quat_from_euler_xyz(
+            torch.as_tensor(math.pi + tilt[:, 0]), torch.as_tensor(tilt[:, 1]), torch.as_tensor(yaw)
+        )
+        eta = pose_to_eta(torch.as_tensor(pos), q_tcp, torch.zeros(3, dtype=torch.float64), spec.psi_ref).numpy()
+        if action_dim == 4:
+            eta[:, 3:5] = 0.0
+        all_eta.append(eta)
+    return DemoSet(
+        s=np.tile(s, num_demos),
+        eta=np.concatenate(all_eta),
+        demo_lengths=np.full(num_demos, n, dtype=np.int64),
+        task=spec.name,
+        psi_ref=spec.psi_ref,
+        action_dim=action_dim,
+        source="synthetic",
+    )

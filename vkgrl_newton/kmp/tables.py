@@ -1,0 +1,268 @@
+"""The KGRL fast path: per-step tables so that eta = m[n] + B[n] zeta (thesis eq. 4.36).
+
+On the uniform control grid s_n = n dt (n = 0..n_steps, dt = KMP dt of Table 5.4) the KGRL
+prediction at step n uses
+  - the receding reference window s_n, s_n + dt, ..., s_n + h dt, each clamped to s <= 1
+    (past the end the window keeps h+1 points and repeats s = 1, so GMR never extrapolates
+    and the final pose is held ever more firmly);
+  - the query s* = s_n and the null-space input s_hat = s* (the KGRL author's formulation).
+Everything but zeta is then fixed per step index, so
+    m[n] = k* A mu                                  (O,)
+    B[n] = (beta/gamma) (k_hat* - k* A K_hat)       (O, O),  A = (K + gamma Sigma)^-1,
+are computed once, batched over steps, in float64 with Cholesky. At run time a policy
+action a in [-1, 1]^D is scaled to zeta = w * a (eq. 5.20) and eta = m[n] + B[n] zeta is
+turned into a TCP pose (eqs. 5.25, 5.32): `predict_pose` here in torch, and the Warp
+kernel `vkgrl_newton.kernels.kmp_horizon` for the batched env step.
+
+Tables always have O = 6 (x, y, z, rx, ry, rz). In 4D mode the KMP is fitted on (x, y, z,
+rz) only and embedded: rows and columns of rx, ry are zero, so roll and pitch stay at the
+reference whatever zeta is.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .gmr import GMM, gmr
+from .pose import AXES_4D, quat_exp, quat_mul
+
+__all__ = ["KMPTables", "build_kmp_tables", "control_grid", "reference_window", "tables_path_for", "file_sha256"]
+
+TABLES_FORMAT_VERSION = 1
+
+
+def _steps_of(dt: float) -> int:
+    if not dt > 0:
+        raise ValueError(f"dt must be > 0, got {dt}")
+    n_steps = int(round(1.0 / dt))
+    if n_steps < 1 or abs(n_steps * dt - 1.0) > 1e-9:
+        raise ValueError(f"dt must be 1/n for a whole number of steps n, got dt = {dt} (1/dt = {1.0 / dt})")
+    return n_steps
+
+
+def control_grid(dt: float) -> torch.Tensor:
+    """Normalized times s_n = n dt, n = 0..1/dt (float64, inclusive of s = 1)."""
+    n_steps = _steps_of(dt)
+    return torch.arange(n_steps + 1, dtype=torch.float64) / n_steps
+
+
+def reference_window(dt: float, horizon: int) -> torch.Tensor:
+    """Reference inputs of every step's window, (n_steps + 1, horizon + 1): s_n + j dt clamped to 1."""
+    if int(horizon) != horizon or horizon < 0:
+        raise ValueError(f"horizon must be a whole number >= 0, got {horizon}")
+    grid = control_grid(dt)
+    offsets = torch.arange(int(horizon) + 1, dtype=torch.float64) * dt
+    return torch.clamp(grid[:, None] + offsets[None, :], max=1.0)
+
+
+@dataclass(frozen=True)
+class KMPTables:
+    """Per-step KGRL tables on the control grid.
+
+    mean: m (S, 6); gain: B (S, 6, 6); S = n_steps + 1; float64 CPU tensors.
+    dt, horizon, lam, beta, l: the KMP parameters they were built with; action_dim 4 or 6.
+    gmm: the GMM the reference came from (kept so the prior can be re-derived and plotted).
+    source_sha256: hash of the demonstration file they were fitted to ('' if none).
+    """
+
+    mean: torch.Tensor
+    gain: torch.Tensor
+    dt: float
+    horizon: int
+    lam: float
+    beta: float
+    l: float
+    action_dim: int
+    gmm: GMM
+    source_sha256: str = ""
+
+    @property
+    def n_steps(self) -> int:
+        return self.mean.shape[0] - 1
+
+    def predict_eta(self, step_index: torch.Tensor, zeta: torch.Tensor) -> torch.Tensor:
+        """eta = m[n] + B[n] zeta, batched: step_index (E,) int, zeta (E, 6) -> (E, 6).
+
+        Step indices past the table's end use its last entry (s = 1). Runs on zeta's device/dtype.
+        """
+        idx = torch.clamp(step_index.long(), 0, self.n_steps)
+        m = self.mean.to(zeta.device, zeta.dtype)[idx]
+        b = self.gain.to(zeta.device, zeta.dtype)[idx]
+        return m + torch.einsum("eij,ej->ei", b, zeta)
+
+    def predict_pose(self, step_index, zeta, target_pos_w, ref_quat_w):
+        """Commanded TCP pose in world frame: (pos (E, 3), quat (E, 4) xyzw), eqs. 5.25 and 5.32.
+
+        target_pos_w (E, 3): target frame position; ref_quat_w (E, 4): q_ref = q(pi, 0, psi_ref).
+        The torch counterpart of the Warp kernel `kmp_horizon_pose`.
+        """
+        eta = self.predict_eta(step_index, zeta)
+        return target_pos_w + eta[:, :3], quat_mul(ref_quat_w, quat_exp(eta[:, 3:]))
+
+    # -- persistence ---------------------------------------------------------------------
+    def save(self, path) -> Path:
+        """Write the tables to an npz file atomically (temporary file + rename)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = dict(
+            format_version=np.int64(TABLES_FORMAT_VERSION),
+            mean=self.mean.numpy(),
+            gain=self.gain.numpy(),
+            dt=np.float64(self.dt),
+            horizon=np.int64(self.horizon),
+            lam=np.float64(self.lam),
+            beta=np.float64(self.beta),
+            l=np.float64(self.l),
+            action_dim=np.int64(self.action_dim),
+            gmm_weights=self.gmm.weights.numpy(),
+            gmm_means=self.gmm.means.numpy(),
+            gmm_covariances=self.gmm.covariances.numpy(),
+            source_sha256=np.str_(self.source_sha256),
+        )
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
+        os.close(fd)
+        try:
+            np.savez(tmp, **arrays)
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        return path
+
+    @classmethod
+    def load(cls, path) -> "KMPTables":
+        """Read tables written by `save`; raises ValueError on a missing key, shape or version mismatch."""
+        path = Path(path)
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{path}: not a readable KMP tables file ({e})") from None
+        with data:
+            required = ("format_version", "mean", "gain", "dt", "horizon", "lam", "beta", "l", "action_dim",
+                        "gmm_weights", "gmm_means", "gmm_covariances", "source_sha256")
+            missing = [k for k in required if k not in data.files]
+            if missing:
+                raise ValueError(f"{path}: not a KMP tables file; missing keys {missing}")
+            version = int(data["format_version"])
+            if version != TABLES_FORMAT_VERSION:
+                raise ValueError(f"{path}: tables format {version}, this code reads {TABLES_FORMAT_VERSION}; rebuild them")
+            mean = torch.as_tensor(data["mean"], dtype=torch.float64)
+            gain = torch.as_tensor(data["gain"], dtype=torch.float64)
+            if mean.ndim != 2 or mean.shape[1] != 6 or gain.shape != (mean.shape[0], 6, 6):
+                raise ValueError(f"{path}: mean {tuple(mean.shape)} / gain {tuple(gain.shape)} are not (S, 6) / (S, 6, 6)")
+            return cls(
+                mean=mean,
+                gain=gain,
+                dt=float(data["dt"]),
+                horizon=int(data["horizon"]),
+                lam=float(data["lam"]),
+                beta=float(data["beta"]),
+                l=float(data["l"]),
+                action_dim=int(data["action_dim"]),
+                gmm=GMM(
+                    weights=torch.as_tensor(data["gmm_weights"]),
+                    means=torch.as_tensor(data["gmm_means"]),
+                    covariances=torch.as_tensor(data["gmm_covariances"]),
+                ),
+                source_sha256=str(data["source_sha256"]),
+            )
+
+
+def _check_params(lam, beta, l, action_dim, horizon):
+    if not float(lam) > 0:
+        raise ValueError(f"lam must be > 0, got {lam}")
+    if not float(beta) >= 0:
+        raise ValueError(f"beta must be >= 0, got {beta}")
+    if not float(l) > 0:
+        raise ValueError(f"l must be > 0, got {l}")
+    if action_dim not in (4, 6):
+        raise ValueError(f"action_dim must be 4 or 6, got {action_dim}")
+    if int(horizon) != horizon or horizon < 0:
+        raise ValueError(f"horizon must be a whole number >= 0, got {horizon}")
+
+
+def build_kmp_tables(
+    gmm: GMM,
+    dt: float,
+    horizon: int,
+    lam: float,
+    beta: float,
+    l: float,
+    action_dim: int = 6,
+    source_sha256: str = "",
+) -> KMPTables:
+    """Precompute m[n] and B[n] for every step of the control grid, batched over steps.
+
+    gmm: the fitted GMM over (s, eta) with O = 6 outputs. See the module docstring for the
+    window and the 4D embedding.
+    """
+    _check_params(lam, beta, l, action_dim, horizon)
+    if gmm.output_dim != 6:
+        raise ValueError(f"gmm must model the 6D relative pose; it has {gmm.output_dim} outputs")
+    windows = reference_window(dt, horizon)  # (S, W)
+    n_grid, w = windows.shape
+    mu, sigma = gmr(gmm, windows.reshape(-1))
+    axes = list(AXES_4D) if action_dim == 4 else list(range(6))
+    o = len(axes)
+    mu = mu[:, axes].reshape(n_grid, w, o)
+    sigma = sigma[:, axes][:, :, axes].reshape(n_grid, w, o, o)
+
+    gamma = float(lam) + float(beta)
+    eye = torch.eye(o, dtype=torch.float64)
+    k = torch.exp(-float(l) * (windows[:, :, None] - windows[:, None, :]) ** 2)  # (S, W, W)
+    # K + gamma Sigma as (S, W, O, W, O) -> (S, WO, WO), time-major like ns_kmp_predict
+    big = k[:, :, None, :, None] * eye[None, None, :, None, :]
+    big = big.clone()
+    idx = torch.arange(w)
+    big[:, idx, :, idx, :] += gamma * sigma.permute(1, 0, 2, 3)
+    big = big.reshape(n_grid, w * o, w * o)
+    chol, info = torch.linalg.cholesky_ex(big)
+    if (info != 0).any():
+        first = int(torch.nonzero(info)[0])
+        raise ValueError(f"K + gamma*Sigma is not positive definite at step {first}; check the demonstrations")
+
+    k_star = k[:, 0, :]  # k(s*, s_i) with s* = s_n = first window point, (S, W)
+    k_hat = k[:, :, 0]  # k(s_i, s_hat) with s_hat = s*, (S, W)
+    a_mu = torch.cholesky_solve(mu.reshape(n_grid, w * o, 1), chol).reshape(n_grid, w, o)
+    k_hat_full = (k_hat[:, :, None, None] * eye).reshape(n_grid, w * o, o)
+    a_k_hat = torch.cholesky_solve(k_hat_full, chol).reshape(n_grid, w, o, o)
+    mean_o = torch.einsum("sw,swo->so", k_star, a_mu)
+    gain_o = (float(beta) / gamma) * (eye - torch.einsum("sw,swij->sij", k_star, a_k_hat))  # k_hat* = k(s*,s*) = 1
+
+    mean = torch.zeros(n_grid, 6, dtype=torch.float64)
+    gain = torch.zeros(n_grid, 6, 6, dtype=torch.float64)
+    mean[:, axes] = mean_o
+    gain[:, torch.tensor(axes)[:, None], torch.tensor(axes)[None, :]] = gain_o
+    return KMPTables(
+        mean=mean,
+        gain=gain,
+        dt=float(dt),
+        horizon=int(horizon),
+        lam=float(lam),
+        beta=float(beta),
+        l=float(l),
+        action_dim=int(action_dim),
+        gmm=gmm,
+        source_sha256=source_sha256,
+    )
+
+
+def file_sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def tables_path_for(demo_path, action_dim: int) -> Path:
+    """Where the tables of a demonstration file live: beside it, `<stem>.kmp<D>d.npz`."""
+    demo_path = Path(demo_path)
+    return demo_path.with_name(f"{demo_path.stem}.kmp{int(action_dim)}d.npz")

@@ -1,0 +1,102 @@
+"""One table of per-task facts, from the thesis (shared/spec) unless noted.
+
+Later issues extend each TaskSpec with geometry, camera (Table 5.6) and the success test;
+what is here is what the KMP prior and the synthetic demonstrations need.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["TaskSpec", "TASKS", "get_task", "CONTROL_DT", "SIM_DT", "DECIMATION"]
+
+SIM_DT = 1.0 / 120.0  # Table 5.1
+DECIMATION = 8  # Table 5.1
+CONTROL_DT = SIM_DT * DECIMATION  # 1/15 s, eq. 5.1
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    name: str
+    episode_length_s: float  # Table 5.1
+    # KMP inference parameters, Table 5.4
+    kmp_dt: float
+    kmp_horizon: int
+    w_pos: float
+    w_rot: float
+    psi_ref: float  # reference yaw of q_ref = q(pi, 0, psi_ref), radians, eq. 5.28
+    # Initial-state randomization, Table 5.2: half-ranges (m) and yaw range (rad)
+    ee_pos_noise: tuple[float, float, float]
+    ee_yaw_range: tuple[float, float]
+    target_pos_noise: tuple[float, float, float]
+    target_yaw_range: tuple[float, float]
+    # Isaac Lab Factory (reference/isaaclab_factory_facts.md section 7): hand start height
+    # above the fixed asset's tip, m
+    hand_init_height: float
+
+    @property
+    def episode_steps(self) -> int:
+        """Control steps per episode (150 for 10 s at 15 Hz)."""
+        return int(round(self.episode_length_s / CONTROL_DT))
+
+    @property
+    def kmp_steps(self) -> int:
+        """Steps of the KMP control grid, 1 / kmp_dt (equals episode_steps for every thesis task)."""
+        return int(round(1.0 / self.kmp_dt))
+
+
+_deg = math.radians
+
+TASKS: dict[str, TaskSpec] = {
+    "PegInsert": TaskSpec(
+        name="PegInsert",
+        episode_length_s=10.0,
+        kmp_dt=1.0 / 150.0,
+        kmp_horizon=15,
+        w_pos=150.0,
+        w_rot=15.0,
+        psi_ref=0.0,
+        ee_pos_noise=(0.02, 0.02, 0.01),
+        ee_yaw_range=(_deg(-45.0), _deg(45.0)),
+        target_pos_noise=(0.05, 0.05, 0.05),
+        target_yaw_range=(_deg(0.0), _deg(360.0)),
+        hand_init_height=0.047,
+    ),
+    "GearMesh": TaskSpec(
+        name="GearMesh",
+        episode_length_s=10.0,
+        kmp_dt=1.0 / 150.0,
+        kmp_horizon=15,
+        w_pos=250.0,
+        w_rot=25.0,
+        psi_ref=0.0,
+        ee_pos_noise=(0.02, 0.02, 0.01),
+        ee_yaw_range=(_deg(-45.0), _deg(45.0)),
+        target_pos_noise=(0.05, 0.05, 0.05),
+        target_yaw_range=(_deg(0.0), _deg(15.0)),
+        hand_init_height=0.035,
+    ),
+    "NutThread": TaskSpec(
+        name="NutThread",
+        episode_length_s=15.0,
+        kmp_dt=1.0 / 225.0,
+        kmp_horizon=25,
+        w_pos=200.0,
+        w_rot=10.0,
+        psi_ref=_deg(-40.0),
+        ee_pos_noise=(0.02, 0.02, 0.01),
+        ee_yaw_range=(_deg(90.0), _deg(120.0)),
+        target_pos_noise=(0.05, 0.05, 0.05),
+        target_yaw_range=(_deg(120.0), _deg(150.0)),
+        hand_init_height=0.015,
+    ),
+}
+
+
+def get_task(name: str) -> TaskSpec:
+    """The TaskSpec of a task name; ValueError naming the allowed names otherwise."""
+    try:
+        return TASKS[name]
+    except KeyError:
+        raise ValueError(f"task must be one of {sorted(TASKS)}, got {name!r}") from None
