@@ -33,7 +33,7 @@ import torch
 from .gmr import GMM, gmr
 from .pose import AXES_4D, quat_exp, quat_mul
 
-__all__ = ["KMPTables", "build_kmp_tables", "control_grid", "reference_window", "tables_path_for", "file_sha256"]
+__all__ = ["KMPTables", "build_kmp_tables", "kmp_eta_torch", "kmp_pose_torch", "control_grid", "reference_window", "tables_path_for", "file_sha256"]
 
 TABLES_FORMAT_VERSION = 1
 
@@ -92,10 +92,9 @@ class KMPTables:
 
         Step indices past the table's end use its last entry (s = 1). Runs on zeta's device/dtype.
         """
-        idx = torch.clamp(step_index.long(), 0, self.n_steps)
-        m = self.mean.to(zeta.device, zeta.dtype)[idx]
-        b = self.gain.to(zeta.device, zeta.dtype)[idx]
-        return m + torch.einsum("eij,ej->ei", b, zeta)
+        mean = self.mean.to(zeta.device, zeta.dtype)
+        gain = self.gain.to(zeta.device, zeta.dtype)
+        return kmp_eta_torch(step_index, zeta, mean, gain)
 
     def predict_pose(self, step_index, zeta, target_pos_w, ref_quat_w):
         """Commanded TCP pose in world frame: (pos (E, 3), quat (E, 4) xyzw), eqs. 5.25 and 5.32.
@@ -103,8 +102,19 @@ class KMPTables:
         target_pos_w (E, 3): target frame position; ref_quat_w (E, 4): q_ref = q(pi, 0, psi_ref).
         The torch counterpart of the Warp kernel `kmp_horizon_pose`.
         """
-        eta = self.predict_eta(step_index, zeta)
-        return target_pos_w + eta[:, :3], quat_mul(ref_quat_w, quat_exp(eta[:, 3:]))
+        mean = self.mean.to(zeta.device, zeta.dtype)
+        gain = self.gain.to(zeta.device, zeta.dtype)
+        return kmp_pose_torch(step_index, zeta, mean, gain, target_pos_w, ref_quat_w)
+
+    def to_warp(self, device=None):
+        """The tables as float32 warp arrays for `kmp_horizon_pose`: (m (S,) vec6f, B (S,) mat66f)."""
+        import warp as wp
+
+        from ..kernels.kmp_horizon import mat66f, vec6f
+
+        mean = wp.array(self.mean.to(torch.float32).numpy(), dtype=vec6f, device=device)
+        gain = wp.array(self.gain.to(torch.float32).numpy(), dtype=mat66f, device=device)
+        return mean, gain
 
     # -- persistence ---------------------------------------------------------------------
     def save(self, path) -> Path:
@@ -252,6 +262,21 @@ def build_kmp_tables(
         gmm=gmm,
         source_sha256=source_sha256,
     )
+
+
+def kmp_eta_torch(step_index, zeta, mean, gain) -> torch.Tensor:
+    """eta = m[n] + B[n] zeta with n clamped to the table; all tensors on one device.
+
+    step_index (E,) int; zeta (E, 6); mean (S, 6); gain (S, 6, 6) -> (E, 6).
+    """
+    idx = torch.clamp(step_index.long(), 0, mean.shape[0] - 1)
+    return mean[idx] + torch.einsum("eij,ej->ei", gain[idx], zeta)
+
+
+def kmp_pose_torch(step_index, zeta, mean, gain, target_pos_w, ref_quat_w):
+    """The computation of the Warp kernel `kmp_horizon_pose` in torch: (pos (E, 3), quat (E, 4) xyzw)."""
+    eta = kmp_eta_torch(step_index, zeta, mean, gain)
+    return target_pos_w + eta[:, :3], quat_mul(ref_quat_w, quat_exp(eta[:, 3:]))
 
 
 def file_sha256(path) -> str:

@@ -1,0 +1,119 @@
+"""The Warp KMP horizon kernel against a float64 torch reference of the same computation."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from vkgrl_newton.kmp.pose import quat_exp, quat_mul, reference_quat
+
+
+def reference_pose(step_index, zeta, mean, gain, target_pos, ref_quat):
+    """float64 reference: eta = m[n] + B[n] zeta, pos = target + eta[:3], quat = q_ref * exp(eta[3:])."""
+    n = torch.clamp(torch.as_tensor(step_index, dtype=torch.long), 0, mean.shape[0] - 1)
+    eta = mean[n] + torch.einsum("eij,ej->ei", gain[n], zeta)
+    return eta, target_pos + eta[:, :3], quat_mul(ref_quat, quat_exp(eta[:, 3:]))
+
+
+def run_kernel(wp, step_index, zeta, mean, gain, target_pos, ref_quat):
+    from vkgrl_newton.kernels.kmp_horizon import kmp_horizon_pose, mat66f, vec6f
+
+    e = len(step_index)
+    f32 = lambda t: np.ascontiguousarray(np.asarray(t, dtype=np.float32))
+    out_eta = wp.zeros(e, dtype=vec6f)
+    out_pos = wp.zeros(e, dtype=wp.vec3)
+    out_quat = wp.zeros(e, dtype=wp.quat)
+    kmp_horizon_pose(
+        wp.array(np.asarray(step_index, dtype=np.int32), dtype=wp.int32),
+        wp.array(f32(zeta), dtype=vec6f),
+        wp.array(f32(mean), dtype=vec6f),
+        wp.array(f32(gain), dtype=mat66f),
+        wp.array(f32(target_pos), dtype=wp.vec3),
+        wp.array(f32(ref_quat), dtype=wp.quat),
+        out_eta,
+        out_pos,
+        out_quat,
+    )
+    return out_eta.numpy(), out_pos.numpy(), out_quat.numpy()
+
+
+def random_case(num_envs=257, num_steps=151, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    rnd = lambda *shape: torch.rand(*shape, generator=g, dtype=torch.float64) * 2 - 1
+    mean = torch.cat([0.05 * rnd(num_steps, 3), 1.2 * rnd(num_steps, 3)], dim=1)
+    gain = 1e-3 * rnd(num_steps, 6, 6)
+    zeta = torch.cat([150 * rnd(num_envs, 3), 15 * rnd(num_envs, 3)], dim=1)
+    # steps include out-of-range indices on both sides: they must clamp to the table
+    step_index = torch.randint(-3, num_steps + 5, (num_envs,), generator=g)
+    target_pos = rnd(num_envs, 3) * torch.tensor([0.6, 0.6, 0.2], dtype=torch.float64)
+    ref_quat = torch.nn.functional.normalize(rnd(num_envs, 4), dim=1)
+    return step_index, zeta, mean, gain, target_pos, ref_quat
+
+
+def test_kernel_matches_float64_reference_on_random_inputs(wp_cpu):
+    case = random_case()
+    eta, pos, quat = run_kernel(wp_cpu, *case)
+    ref_eta, ref_pos, ref_quat = reference_pose(*case)
+    assert np.abs(eta - ref_eta.numpy()).max() < 1e-5
+    assert np.abs(pos - ref_pos.numpy()).max() < 1e-5
+    assert np.abs(quat - ref_quat.numpy()).max() < 1e-5
+    assert np.abs(np.linalg.norm(quat, axis=1) - 1).max() < 1e-6
+
+
+def test_kernel_small_and_zero_rotations(wp_cpu):
+    """The series branch of exp (angle < 1e-3) and angle 0 give q_ref * exp(r) as well."""
+    num_envs = 64
+    angles = torch.cat([torch.zeros(1), torch.logspace(-9, -2, num_envs - 1)]).double()
+    axis = torch.nn.functional.normalize(torch.randn(num_envs, 3, generator=torch.Generator().manual_seed(1)).double(), dim=1)
+    mean = torch.zeros(num_envs, 6, dtype=torch.float64)
+    mean[:, 3:] = axis * angles[:, None]
+    gain = torch.zeros(num_envs, 6, 6, dtype=torch.float64)
+    step_index = torch.arange(num_envs)
+    zeta = torch.zeros(num_envs, 6, dtype=torch.float64)
+    target = torch.zeros(num_envs, 3, dtype=torch.float64)
+    q_ref = reference_quat(math.radians(-40.0)).expand(num_envs, 4).contiguous()
+    _, _, quat = run_kernel(wp_cpu, step_index, zeta, mean, gain, target, q_ref)
+    _, _, ref_quat = reference_pose(step_index, zeta, mean, gain, target, q_ref)
+    assert np.abs(quat - ref_quat.numpy()).max() < 1e-6
+    # angle 0: exactly the reference orientation
+    assert np.abs(quat[0] - q_ref[0].numpy()).max() < 1e-7
+
+
+def test_kernel_with_fitted_tables_matches_tables_predict_pose(wp_cpu):
+    """Tables from the KMP pipeline (to_warp layout, 4D embedding) drive the kernel like predict_pose."""
+    from vkgrl_newton.kmp import fit_prior, synthetic_demos
+    from vkgrl_newton.kernels.kmp_horizon import kmp_horizon_pose, vec6f
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=4, seed=3), action_dim=4, n_components=4)
+    mean_wp, gain_wp = tables.to_warp("cpu")
+    num_envs = 128
+    g = torch.Generator().manual_seed(2)
+    action = torch.rand(num_envs, 6, generator=g, dtype=torch.float64) * 2 - 1
+    action[:, 3:5] = 0.0  # 4D: no roll/pitch action
+    zeta = action * torch.tensor([150.0] * 3 + [15.0] * 3, dtype=torch.float64)
+    step_index = torch.randint(0, tables.n_steps + 1, (num_envs,), generator=g)
+    target = torch.rand(num_envs, 3, generator=g, dtype=torch.float64)
+    q_ref = reference_quat(0.0).expand(num_envs, 4).contiguous()
+    out = [wp_cpu.zeros(num_envs, dtype=t) for t in (vec6f, wp_cpu.vec3, wp_cpu.quat)]
+    kmp_horizon_pose(
+        wp_cpu.array(step_index.numpy().astype(np.int32), dtype=wp_cpu.int32),
+        wp_cpu.array(zeta.numpy().astype(np.float32), dtype=vec6f),
+        mean_wp,
+        gain_wp,
+        wp_cpu.array(target.numpy().astype(np.float32), dtype=wp_cpu.vec3),
+        wp_cpu.array(q_ref.numpy().astype(np.float32), dtype=wp_cpu.quat),
+        *out,
+    )
+    ref_pos, ref_quat = tables.predict_pose(step_index, zeta, target, q_ref)
+    assert np.abs(out[1].numpy() - ref_pos.numpy()).max() < 1e-5
+    assert np.abs(out[2].numpy() - ref_quat.numpy()).max() < 1e-5
+    # 4D: roll and pitch of the command stay at the reference
+    assert np.abs(out[0].numpy()[:, 3:5]).max() == 0.0
+
+
+def test_kernel_rejects_mismatched_lengths(wp_cpu):
+    case = random_case(num_envs=8, num_steps=5)
+    with pytest.raises(ValueError, match="zeta"):
+        step_index, zeta, *rest = case
+        run_kernel(wp_cpu, step_index, zeta[:7], *rest)
