@@ -16,6 +16,7 @@ the fast path and are tested against `ns_kmp_predict`.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -78,7 +79,8 @@ def validate_reference(s_ref, mu_ref, sigma_ref):
         if not torch.isfinite(t).all():
             raise ValueError(f"{name} contains NaN or inf")
     asym = (sigma_ref - sigma_ref.transpose(-1, -2)).abs().amax()
-    if asym > 1e-9 * max(1.0, float(sigma_ref.abs().amax())):
+    # relative to the covariances' own scale: millimetre spread means entries of 1e-8 m^2
+    if asym > 1e-9 * float(sigma_ref.abs().amax()):
         raise ValueError(f"sigma_ref must be symmetric (max |S - S^T| = {float(asym):.3g})")
     _, info = torch.linalg.cholesky_ex(sigma_ref)
     bad = torch.nonzero(info).reshape(-1)
@@ -109,6 +111,8 @@ def kmp_mean(s_star, s_ref, mu_ref, sigma_ref, lam: float, l: float) -> torch.Te
     """KMP mean E[eta(s*)] = k* (K + lam Sigma)^-1 mu (eq. 3.29) at each query; returns (M, O)."""
     lam = _check_positive("lam", lam)
     l = _check_positive("l", l)
+    if mu_ref is None:
+        raise ValueError("mu_ref is required: the reference means (N, O)")
     s_ref, mu_ref, sigma_ref = validate_reference(s_ref, mu_ref, sigma_ref)
     s_star = _f64(s_star, "s_star").reshape(-1)
     o = mu_ref.shape[1]
@@ -176,8 +180,10 @@ def ns_kmp_predict(s_star, xi, s_hat, s_ref, mu_ref, sigma_ref, lam, beta, l):
         KMP mean with lam).  l: kernel parameter > 0 (multiplies the squared distance).
 
     Inputs may be numpy arrays or torch tensors; the computation runs in float64 on the CPU
-    with a Cholesky factorization, and the result is a float64 torch tensor.
+    with a Cholesky factorization. The result is a float64 numpy array if mu_ref is a numpy
+    array, else a float64 torch tensor.
     """
+    as_numpy = isinstance(mu_ref, np.ndarray)
     lam = _check_positive("lam", lam)
     beta = _check_nonnegative("beta", beta)
     l = _check_positive("l", l)
@@ -192,7 +198,7 @@ def ns_kmp_predict(s_star, xi, s_hat, s_ref, mu_ref, sigma_ref, lam, beta, l):
     s_hat = _f64(s_hat, "s_hat").reshape(-1)
     if s_star.numel() != 1 or s_hat.numel() != 1:
         raise ValueError(f"s_star and s_hat must be scalars, got {s_star.numel()} and {s_hat.numel()} values")
-    return _ns_kmp_from_blocks(
+    eta = _ns_kmp_from_blocks(
         k_star=_kron_eye(rbf_kernel(s_star, s_ref, l), o),
         big_k=_kron_eye(rbf_kernel(s_ref, s_ref, l), o),
         k_hat_star=_kron_eye(rbf_kernel(s_star, s_hat, l), o),
@@ -204,3 +210,4 @@ def ns_kmp_predict(s_star, xi, s_hat, s_ref, mu_ref, sigma_ref, lam, beta, l):
         lam=lam,
         beta=beta,
     )
+    return eta.numpy() if as_numpy else eta

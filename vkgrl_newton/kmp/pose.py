@@ -10,7 +10,8 @@ The log map returns the rotation vector of the shortest rotation (angle in [0, p
 of q is irrelevant (q and -q give the same rotation vector).
 
 4D mode (xyz + yaw): roll and pitch stay at the reference, so the rotation vector is
-(0, 0, delta_psi) (eq. 5.33); `project_4d` enforces that on a 6D pose.
+(0, 0, delta_psi) (eq. 5.33); `project_4d` enforces that on a 6D pose. Sign: q_ref has roll
+pi (gripper z down), so q_ref^-1 q(pi, 0, psi_ref + d) = q_z(-d): a world yaw of +d is rz = -d.
 """
 
 from __future__ import annotations

@@ -58,7 +58,7 @@ def fit_prior(
     """Fit the GMM to a demonstration set and precompute the KGRL tables on its task's grid."""
     spec = get_task(demos.task)
     gmm = fit_gmm(demos.s, demos.eta, n_components=n_components, seed=seed)
-    return build_kmp_tables(gmm, spec.kmp_dt, spec.kmp_horizon, lam, beta, l, action_dim, source_sha256)
+    return build_kmp_tables(gmm, spec.kmp_dt, spec.kmp_horizon, lam, beta, l, action_dim, source_sha256, seed)
 
 
 def load_or_fit_prior(
@@ -73,7 +73,7 @@ def load_or_fit_prior(
     """Tables for a demonstration file, cached beside it (`<stem>.kmp<D>d.npz`).
 
     The cache is reused only if it was built from the same file contents (sha256) with the
-    same parameters; otherwise it is rebuilt. Returns (tables, tables_path, rebuilt).
+    same parameters and GMM seed; otherwise it is rebuilt (the tables are derived data). Returns (tables, tables_path, rebuilt).
     """
     demo_path = Path(demo_path)
     demos = DemoSet.load(demo_path)
@@ -83,7 +83,7 @@ def load_or_fit_prior(
     if path.exists():
         try:
             cached = KMPTables.load(path)
-        except ValueError:
+        except (ValueError, FileNotFoundError):
             cached = None
         if cached is not None and (
             cached.source_sha256 == digest
@@ -91,6 +91,7 @@ def load_or_fit_prior(
             and (cached.lam, cached.beta, cached.l) == (float(lam), float(beta), float(l))
             and (cached.dt, cached.horizon) == (spec.kmp_dt, spec.kmp_horizon)
             and cached.gmm.n_components == n_components
+            and cached.fit_seed == int(seed)
         ):
             return cached, path, False
     tables = fit_prior(demos, action_dim, lam, beta, l, n_components, seed, source_sha256=digest)

@@ -70,6 +70,7 @@ class KMPTables:
     dt, horizon, lam, beta, l: the KMP parameters they were built with; action_dim 4 or 6.
     gmm: the GMM the reference came from (kept so the prior can be re-derived and plotted).
     source_sha256: hash of the demonstration file they were fitted to ('' if none).
+    fit_seed: the random seed of the GMM fit (-1 if unknown), part of the cache key.
     """
 
     mean: torch.Tensor
@@ -82,6 +83,7 @@ class KMPTables:
     action_dim: int
     gmm: GMM
     source_sha256: str = ""
+    fit_seed: int = -1
 
     @property
     def n_steps(self) -> int:
@@ -135,6 +137,7 @@ class KMPTables:
             gmm_means=self.gmm.means.numpy(),
             gmm_covariances=self.gmm.covariances.numpy(),
             source_sha256=np.str_(self.source_sha256),
+            fit_seed=np.int64(self.fit_seed),
         )
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
         os.close(fd)
@@ -150,13 +153,15 @@ class KMPTables:
     def load(cls, path) -> "KMPTables":
         """Read tables written by `save`; raises ValueError on a missing key, shape or version mismatch."""
         path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"KMP tables file {path} does not exist")
         try:
             data = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as e:
             raise ValueError(f"{path}: not a readable KMP tables file ({e})") from None
         with data:
             required = ("format_version", "mean", "gain", "dt", "horizon", "lam", "beta", "l", "action_dim",
-                        "gmm_weights", "gmm_means", "gmm_covariances", "source_sha256")
+                        "gmm_weights", "gmm_means", "gmm_covariances", "source_sha256", "fit_seed")
             missing = [k for k in required if k not in data.files]
             if missing:
                 raise ValueError(f"{path}: not a KMP tables file; missing keys {missing}")
@@ -182,6 +187,7 @@ class KMPTables:
                     covariances=torch.as_tensor(data["gmm_covariances"]),
                 ),
                 source_sha256=str(data["source_sha256"]),
+                fit_seed=int(data["fit_seed"]),
             )
 
 
@@ -207,6 +213,7 @@ def build_kmp_tables(
     l: float,
     action_dim: int = 6,
     source_sha256: str = "",
+    fit_seed: int = -1,
 ) -> KMPTables:
     """Precompute m[n] and B[n] for every step of the control grid, batched over steps.
 
@@ -261,6 +268,7 @@ def build_kmp_tables(
         action_dim=int(action_dim),
         gmm=gmm,
         source_sha256=source_sha256,
+        fit_seed=int(fit_seed),
     )
 
 
