@@ -6,6 +6,10 @@ device (cpu, and cuda when present). Each timing is the median of --repeats runs
 --warmup runs, with the device synchronized around each run; inputs are allocated once,
 outside the timed region. Prints a table and writes JSON.
 
+On the CPU, Warp runs kernels on one thread, so torch is pinned to one thread too by default
+(--torch-threads 1): a like-for-like comparison, and immune to the thread oversubscription
+that makes multi-threaded torch timings on a busy 2-core machine swing by 50x.
+
 A kernel joins the benchmark by adding a `Case` to `CASES`: a name and a setup function
 (batch, device) -> (warp_fn, torch_fn), both zero-argument callables doing one batched call.
 """
@@ -124,7 +128,12 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=100)
     p.add_argument("--json", default="runs/bench/kernels.json", help="where to write the results")
     p.add_argument("--only", nargs="+", default=None, help=f"case names, from {[c.name for c in CASES]}")
+    p.add_argument("--torch-threads", type=int, default=1, help="torch CPU threads (0: torch's default)")
     args = p.parse_args(argv)
+    if args.torch_threads < 0:
+        raise SystemExit(f"--torch-threads must be >= 0, got {args.torch_threads}")
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
 
     wp.config.quiet = True
     wp.init()
