@@ -42,7 +42,8 @@ class Case:
 
 
 def _torch_device(device: str) -> str:
-    return "cuda" if device.startswith("cuda") else "cpu"
+    """torch's name of a warp device: 'cuda:N' is the same in both, warp's 'cpu' is torch's 'cpu'."""
+    return device if device.startswith("cuda") else "cpu"
 
 
 def setup_kmp_horizon(batch: int, device: str):

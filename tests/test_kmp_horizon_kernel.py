@@ -117,3 +117,34 @@ def test_kernel_rejects_mismatched_lengths(wp_cpu):
     with pytest.raises(ValueError, match="zeta"):
         step_index, zeta, *rest = case
         run_kernel(wp_cpu, step_index, zeta[:7], *rest)
+
+
+def test_kernel_reads_nonsymmetric_gain_through_from_torch(wp_cpu):
+    """torch (S, 6, 6) tables viewed as mat66f with wp.from_torch (the env's zero-copy path)
+    are read row-major: a non-symmetric B gives B @ zeta, not B^T @ zeta."""
+    from vkgrl_newton.kernels.kmp_horizon import kmp_horizon_pose, mat66f, vec6f
+
+    g = torch.Generator().manual_seed(5)
+    num_envs, num_steps = 32, 7
+    mean = torch.zeros(num_steps, 6)
+    gain = torch.triu(torch.rand(num_steps, 6, 6, generator=g)) * 1e-2  # upper triangular: far from symmetric
+    zeta = torch.rand(num_envs, 6, generator=g)
+    step_index = torch.randint(0, num_steps, (num_envs,), generator=g, dtype=torch.int32)
+    target = torch.zeros(num_envs, 3)
+    q_ref = torch.tensor([[0.0, 0.0, 0.0, 1.0]]).repeat(num_envs, 1)
+    eta = wp_cpu.zeros(num_envs, dtype=vec6f)
+    kmp_horizon_pose(
+        wp_cpu.from_torch(step_index, dtype=wp_cpu.int32),
+        wp_cpu.from_torch(zeta, dtype=vec6f),
+        wp_cpu.from_torch(mean, dtype=vec6f),
+        wp_cpu.from_torch(gain, dtype=mat66f),
+        wp_cpu.from_torch(target, dtype=wp_cpu.vec3),
+        wp_cpu.from_torch(q_ref, dtype=wp_cpu.quat),
+        eta,
+        wp_cpu.zeros(num_envs, dtype=wp_cpu.vec3),
+        wp_cpu.zeros(num_envs, dtype=wp_cpu.quat),
+    )
+    want = torch.einsum("eij,ej->ei", gain.double()[step_index.long()], zeta.double())
+    assert np.abs(eta.numpy() - want.numpy()).max() < 1e-7
+    wrong = torch.einsum("eji,ej->ei", gain.double()[step_index.long()], zeta.double())
+    assert (want - wrong).abs().max() > 1e-3  # the check can tell the layouts apart

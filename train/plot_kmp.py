@@ -66,7 +66,10 @@ def parse_args(argv=None):
 def synthetic_demo_file(task: str, num_demos: int, action_dim: int, seed: int, out: Path) -> Path:
     path = out / f"synthetic_{task}_{action_dim}d_n{num_demos}_seed{seed}.npz"
     if path.exists():
-        DemoSet.load(path)  # validates; same name means same generator parameters
+        found = DemoSet.load(path)
+        if (found.task, found.num_demos, found.action_dim, found.source) != (task, num_demos, action_dim, "synthetic"):
+            raise SystemExit(f"error: {path} exists but is not the synthetic set this run would draw; "
+                             "move it away or choose another --out")
         return path
     return synthetic_demos(task, num_demos, action_dim=action_dim, seed=seed).save(path)
 
@@ -129,8 +132,14 @@ def main(argv=None) -> int:
             return 2
         out = args.out or demo_path.parent
     demos = DemoSet.load(demo_path)
-    action_dim = args.action_dim or demos.action_dim
-    tables, tables_path, rebuilt = load_or_fit_prior(demo_path, action_dim, args.lam, args.beta, args.l, seed=args.seed)
+    try:
+        tables, tables_path, rebuilt = load_or_fit_prior(
+            demo_path, args.action_dim, args.lam, args.beta, args.l, seed=args.seed
+        )
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    action_dim = tables.action_dim
     png = plot_prior(demos, tables, args.lam, args.lam_c, out / f"kmp_{demos.task}_{action_dim}d.png")
     print(f"demonstrations: {demo_path} ({demos.num_demos} x {demos.source})")
     print(f"KMP tables:     {tables_path} ({'fitted' if rebuilt else 'cached'})")

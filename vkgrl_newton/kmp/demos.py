@@ -9,6 +9,10 @@ File format (npz, no pickles), one row per recorded control step of every demons
     action_dim   int             4 if roll and pitch were held at the reference, else 6
     source       str             'synthetic' or the recorder's name (e.g. 'scripted')
 
+Rotation vectors must be continuous along each demonstration: log() wraps at an angle of
+pi, so a recorder applies `pose.unwrap_rotation_vectors` per demonstration (a jump of more
+than pi between samples is rejected).
+
 The synthetic demonstrator draws task-shaped insertions (align above the target, descend,
 insert or thread, hold) with the initial-state spread of thesis Table 5.2, the 1 mm target
 noise of eq. 5.23 and per-demonstration timing variation. It exists so that the KMP
@@ -18,16 +22,15 @@ pipeline runs and can be inspected before the simulator exists; it is not physic
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from .._io import atomic_savez, load_npz
 from ..tasks import get_task
-from .pose import pose_to_eta, quat_from_euler_xyz
+from .pose import pose_to_eta, quat_from_euler_xyz, unwrap_rotation_vectors
 
 __all__ = ["DemoSet", "synthetic_demos"]
 
@@ -58,11 +61,25 @@ class DemoSet:
             raise ValueError("s / eta contain NaN or inf")
         if (s < 0).any() or (s > 1).any():
             raise ValueError("s: normalized time must lie in [0, 1]")
-        for i, seg in enumerate(np.split(s, np.cumsum(lengths)[:-1])):
-            if (np.diff(seg) < 0).any():
-                raise ValueError(f"s: time decreases inside demonstration {i}")
         if self.action_dim not in (4, 6):
             raise ValueError(f"action_dim must be 4 or 6, got {self.action_dim}")
+        cuts = np.cumsum(lengths)[:-1]
+        for i, (seg, eta_seg) in enumerate(zip(np.split(s, cuts), np.split(eta, cuts))):
+            if (np.diff(seg) < 0).any():
+                raise ValueError(f"s: time decreases inside demonstration {i}")
+            if abs(seg[0]) > 1e-9 or abs(seg[-1] - 1.0) > 1e-9:
+                raise ValueError(
+                    f"s: demonstration {i} runs from {seg[0]:.6g} to {seg[-1]:.6g}; time must be "
+                    "normalized per demonstration to start at 0 and end at 1"
+                )
+            jump = np.linalg.norm(np.diff(eta_seg[:, 3:], axis=0), axis=1)
+            if jump.size and jump.max() > math.pi:
+                raise ValueError(
+                    f"eta: the rotation vector of demonstration {i} jumps by {jump.max():.3g} rad between "
+                    "samples (log wrapped at pi); unwrap it with vkgrl_newton.kmp.pose.unwrap_rotation_vectors"
+                )
+        if self.action_dim == 4 and np.abs(eta[:, 3:5]).max() > 1e-9:
+            raise ValueError("eta: action_dim is 4 but roll/pitch (eta[:, 3:5]) are not at the reference (zero)")
 
     @property
     def num_demos(self) -> int:
@@ -74,54 +91,36 @@ class DemoSet:
         return list(zip(np.split(self.s, cuts), np.split(self.eta, cuts)))
 
     def save(self, path) -> Path:
-        """Write atomically; refuses to overwrite an existing file (demonstrations are user data)."""
-        path = Path(path)
-        if path.exists():
-            raise FileExistsError(f"{path} exists; demonstrations are never overwritten, choose another path")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
-        os.close(fd)
-        try:
-            np.savez(
-                tmp,
-                format_version=np.int64(DEMO_FORMAT_VERSION),
-                s=self.s,
-                eta=self.eta,
-                demo_lengths=self.demo_lengths,
-                task=np.str_(self.task),
-                psi_ref=np.float64(self.psi_ref),
-                action_dim=np.int64(self.action_dim),
-                source=np.str_(self.source),
-            )
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        return path
+        """Write atomically; never overwrites an existing file (demonstrations are user data)."""
+        return atomic_savez(
+            path,
+            overwrite=False,
+            format_version=np.int64(DEMO_FORMAT_VERSION),
+            s=self.s,
+            eta=self.eta,
+            demo_lengths=self.demo_lengths,
+            task=np.str_(self.task),
+            psi_ref=np.float64(self.psi_ref),
+            action_dim=np.int64(self.action_dim),
+            source=np.str_(self.source),
+        )
 
     @classmethod
     def load(cls, path) -> "DemoSet":
-        path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"demonstration file {path} does not exist")
+        """Read a demonstration file; FileNotFoundError if missing, ValueError if damaged or invalid."""
+        data = load_npz(path, "demonstration", ("s", "eta", "demo_lengths", "task", "psi_ref", "action_dim"))
         try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"{path}: not a readable npz file ({e})") from None
-        with data:
-            need = ("s", "eta", "demo_lengths", "task", "psi_ref", "action_dim")
-            missing = [k for k in need if k not in data.files]
-            if missing:
-                raise ValueError(f"{path}: not a demonstration file; missing keys {missing}")
             return cls(
                 s=np.asarray(data["s"], dtype=np.float64),
                 eta=np.asarray(data["eta"], dtype=np.float64),
-                demo_lengths=np.asarray(data["demo_lengths"], dtype=np.int64),
+                demo_lengths=np.asarray(data["demo_lengths"], dtype=np.int64).reshape(-1),
                 task=str(data["task"]),
                 psi_ref=float(data["psi_ref"]),
                 action_dim=int(data["action_dim"]),
-                source=str(data["source"]) if "source" in data.files else "unknown",
+                source=str(data["source"]) if "source" in data else "unknown",
             )
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{path}: invalid demonstration file: {e}") from None
 
 
 def _min_jerk(tau: np.ndarray) -> np.ndarray:
@@ -188,6 +187,7 @@ def synthetic_demos(task: str, num_demos: int = 10, action_dim: int = 6, seed: i
             torch.as_tensor(math.pi + tilt[:, 0]), torch.as_tensor(tilt[:, 1]), torch.as_tensor(yaw)
         )
         eta = pose_to_eta(torch.as_tensor(pos), q_tcp, torch.zeros(3, dtype=torch.float64), spec.psi_ref).numpy()
+        eta[:, 3:] = unwrap_rotation_vectors(eta[:, 3:])
         if action_dim == 4:
             eta[:, 3:5] = 0.0
         all_eta.append(eta)

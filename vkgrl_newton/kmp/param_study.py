@@ -65,9 +65,10 @@ def main(argv=None):
     p.add_argument("--task", default="PegInsert")
     p.add_argument("--num-demos", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
+    # the grid the defaults in prior.py were chosen from
     p.add_argument("--lam", type=float, nargs="+", default=[0.1, 1.0, 6.0])
-    p.add_argument("--beta", type=float, nargs="+", default=[1.0, 6.0, 30.0])
-    p.add_argument("--l", type=float, nargs="+", default=[2.0, 20.0, 200.0])
+    p.add_argument("--beta", type=float, nargs="+", default=[1.0, 2.0, 3.0, 4.0, 6.0, 10.0, 30.0])
+    p.add_argument("--l", type=float, nargs="+", default=[2.0, 20.0, 200.0, 1000.0])
     args = p.parse_args(argv)
     spec = get_task(args.task)
     demos = synthetic_demos(spec.name, args.num_demos, action_dim=6, seed=args.seed)

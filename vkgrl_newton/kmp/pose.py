@@ -10,7 +10,7 @@ The log map returns the rotation vector of the shortest rotation (angle in [0, p
 of q is irrelevant (q and -q give the same rotation vector).
 
 4D mode (xyz + yaw): roll and pitch stay at the reference, so the rotation vector is
-(0, 0, delta_psi) (eq. 5.33); `project_4d` enforces that on a 6D pose. Sign: q_ref has roll
+(0, 0, delta_psi) (eq. 5.33). Sign: q_ref has roll
 pi (gripper z down), so q_ref^-1 q(pi, 0, psi_ref + d) = q_z(-d): a world yaw of +d is rz = -d.
 """
 
@@ -29,7 +29,7 @@ __all__ = [
     "reference_quat",
     "pose_to_eta",
     "eta_to_pose",
-    "project_4d",
+    "unwrap_rotation_vectors",
     "AXES_4D",
 ]
 
@@ -148,8 +148,25 @@ def eta_to_pose(eta, p_target, psi_ref: float) -> tuple[torch.Tensor, torch.Tens
     return p_target + eta[..., :3], quat_mul(q_ref.expand_as(q_rel), q_rel)
 
 
-def project_4d(eta: torch.Tensor) -> torch.Tensor:
-    """Zero roll and pitch of a 6D relative pose (..., 6): the 4D action space (eq. 5.33)."""
-    eta = _as_tensor(eta).clone()
-    eta[..., 3:5] = 0.0
-    return eta
+def unwrap_rotation_vectors(rotvec) -> "np.ndarray":
+    """Make a sequence of rotation vectors (T, 3) continuous across the log map's wrap at pi.
+
+    log() returns angles in [0, pi]; a rotation passing through pi flips to the antipodal
+    vector. Each sample is replaced by the equivalent vector r + 2 pi k r/|r| (k = -1, 0, 1
+    relative to the previous sample's winding) closest to its predecessor, so that KMP sees a
+    smooth trajectory (e.g. a nut turned past 180 degrees). exp() of the result is unchanged.
+    """
+    import numpy as np
+
+    r = np.array(rotvec, dtype=np.float64, copy=True)
+    if r.ndim != 2 or r.shape[1] != 3:
+        raise ValueError(f"rotvec must have shape (T, 3), got {r.shape}")
+    for t in range(1, r.shape[0]):
+        angle = np.linalg.norm(r[t])
+        if angle < 1e-12:
+            continue
+        axis = r[t] / angle
+        # candidates with the same rotation: (angle + 2 pi k) * axis, k in a small range
+        cands = [(angle + 2.0 * math.pi * k) * axis for k in range(-2, 3)]
+        r[t] = min(cands, key=lambda c: float(np.linalg.norm(c - r[t - 1])))
+    return r

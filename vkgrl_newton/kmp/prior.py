@@ -47,7 +47,7 @@ KMP_L = 20.0
 
 def fit_prior(
     demos: DemoSet,
-    action_dim: int = 6,
+    action_dim: int | None = None,
     lam: float = KMP_LAMBDA,
     beta: float = KMP_BETA,
     l: float = KMP_L,
@@ -55,15 +55,26 @@ def fit_prior(
     seed: int = 0,
     source_sha256: str = "",
 ) -> KMPTables:
-    """Fit the GMM to a demonstration set and precompute the KGRL tables on its task's grid."""
+    """Fit the GMM to a demonstration set and precompute the KGRL tables on its task's grid.
+
+    action_dim: 4 or 6; None means the demonstrations' own. 6D tables need 6D demonstrations.
+    """
     spec = get_task(demos.task)
+    if abs(demos.psi_ref - spec.psi_ref) > 1e-9:
+        raise ValueError(
+            f"demonstrations: psi_ref {demos.psi_ref:.6g} rad differs from {spec.name}'s {spec.psi_ref:.6g} rad; "
+            "eta must be relative to the task's q_ref"
+        )
+    action_dim = demos.action_dim if action_dim is None else action_dim
+    if action_dim == 6 and demos.action_dim == 4:
+        raise ValueError("action_dim: 6D tables need 6D demonstrations; these hold roll and pitch at the reference")
     gmm = fit_gmm(demos.s, demos.eta, n_components=n_components, seed=seed)
     return build_kmp_tables(gmm, spec.kmp_dt, spec.kmp_horizon, lam, beta, l, action_dim, source_sha256, seed)
 
 
 def load_or_fit_prior(
     demo_path,
-    action_dim: int = 6,
+    action_dim: int | None = None,
     lam: float = KMP_LAMBDA,
     beta: float = KMP_BETA,
     l: float = KMP_L,
@@ -73,18 +84,23 @@ def load_or_fit_prior(
     """Tables for a demonstration file, cached beside it (`<stem>.kmp<D>d.npz`).
 
     The cache is reused only if it was built from the same file contents (sha256) with the
-    same parameters and GMM seed; otherwise it is rebuilt (the tables are derived data). Returns (tables, tables_path, rebuilt).
+    same parameters and GMM seed; otherwise it is rebuilt (the tables are derived data). A
+    file at that path that is not a tables file is never overwritten (ValueError).
+    action_dim None means the demonstrations' own. Returns (tables, tables_path, rebuilt).
     """
     demo_path = Path(demo_path)
     demos = DemoSet.load(demo_path)
     spec = get_task(demos.task)
+    action_dim = demos.action_dim if action_dim is None else action_dim
     digest = file_sha256(demo_path)
     path = tables_path_for(demo_path, action_dim)
     if path.exists():
         try:
             cached = KMPTables.load(path)
-        except (ValueError, FileNotFoundError):
-            cached = None
+        except ValueError as e:
+            if "not a KMP tables file" in str(e) and "missing keys" in str(e):
+                raise ValueError(f"{path} exists and is not a KMP tables file; move it away, it is not overwritten") from None
+            cached = None  # damaged or stale tables: derived data, rebuilt below
         if cached is not None and (
             cached.source_sha256 == digest
             and cached.action_dim == action_dim

@@ -22,15 +22,15 @@ reference whatever zeta is.
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from .._io import atomic_savez, load_npz
 from .gmr import GMM, gmr
+from .kmp import _check_nonnegative, _check_positive
 from .pose import AXES_4D, quat_exp, quat_mul
 
 __all__ = ["KMPTables", "build_kmp_tables", "kmp_eta_torch", "kmp_pose_torch", "control_grid", "reference_window", "tables_path_for", "file_sha256"]
@@ -93,6 +93,8 @@ class KMPTables:
         """eta = m[n] + B[n] zeta, batched: step_index (E,) int, zeta (E, 6) -> (E, 6).
 
         Step indices past the table's end use its last entry (s = 1). Runs on zeta's device/dtype.
+        A reference and offline tool: it copies the tables to that device on every call. The
+        per-step path is the Warp kernel with `to_warp()` arrays made once.
         """
         mean = self.mean.to(zeta.device, zeta.dtype)
         gain = self.gain.to(zeta.device, zeta.dtype)
@@ -121,9 +123,9 @@ class KMPTables:
     # -- persistence ---------------------------------------------------------------------
     def save(self, path) -> Path:
         """Write the tables to an npz file atomically (temporary file + rename)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        arrays = dict(
+        return atomic_savez(
+            path,
+            overwrite=True,
             format_version=np.int64(TABLES_FORMAT_VERSION),
             mean=self.mean.numpy(),
             gain=self.gain.numpy(),
@@ -139,43 +141,29 @@ class KMPTables:
             source_sha256=np.str_(self.source_sha256),
             fit_seed=np.int64(self.fit_seed),
         )
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
-        os.close(fd)
-        try:
-            np.savez(tmp, **arrays)
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        return path
 
     @classmethod
     def load(cls, path) -> "KMPTables":
-        """Read tables written by `save`; raises ValueError on a missing key, shape or version mismatch."""
-        path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"KMP tables file {path} does not exist")
+        """Read tables written by `save`; FileNotFoundError if missing, ValueError if damaged,
+        incomplete, of another format version, or inconsistent (shapes, NaN, grid length)."""
+        data = load_npz(path, "KMP tables", _TABLE_KEYS)
+        version = int(data["format_version"])
+        if version != TABLES_FORMAT_VERSION:
+            raise ValueError(f"{path}: tables format {version}, this code reads {TABLES_FORMAT_VERSION}; rebuild them")
         try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"{path}: not a readable KMP tables file ({e})") from None
-        with data:
-            required = ("format_version", "mean", "gain", "dt", "horizon", "lam", "beta", "l", "action_dim",
-                        "gmm_weights", "gmm_means", "gmm_covariances", "source_sha256", "fit_seed")
-            missing = [k for k in required if k not in data.files]
-            if missing:
-                raise ValueError(f"{path}: not a KMP tables file; missing keys {missing}")
-            version = int(data["format_version"])
-            if version != TABLES_FORMAT_VERSION:
-                raise ValueError(f"{path}: tables format {version}, this code reads {TABLES_FORMAT_VERSION}; rebuild them")
             mean = torch.as_tensor(data["mean"], dtype=torch.float64)
             gain = torch.as_tensor(data["gain"], dtype=torch.float64)
+            dt = float(data["dt"])
             if mean.ndim != 2 or mean.shape[1] != 6 or gain.shape != (mean.shape[0], 6, 6):
-                raise ValueError(f"{path}: mean {tuple(mean.shape)} / gain {tuple(gain.shape)} are not (S, 6) / (S, 6, 6)")
+                raise ValueError(f"mean {tuple(mean.shape)} / gain {tuple(gain.shape)} are not (S, 6) / (S, 6, 6)")
+            if mean.shape[0] != _steps_of(dt) + 1:
+                raise ValueError(f"{mean.shape[0]} table rows do not match dt = {dt} ({_steps_of(dt) + 1} grid points)")
+            if not (torch.isfinite(mean).all() and torch.isfinite(gain).all()):
+                raise ValueError("tables contain NaN or inf")
             return cls(
                 mean=mean,
                 gain=gain,
-                dt=float(data["dt"]),
+                dt=dt,
                 horizon=int(data["horizon"]),
                 lam=float(data["lam"]),
                 beta=float(data["beta"]),
@@ -189,19 +177,20 @@ class KMPTables:
                 source_sha256=str(data["source_sha256"]),
                 fit_seed=int(data["fit_seed"]),
             )
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{path}: invalid KMP tables file: {e}") from None
 
 
-def _check_params(lam, beta, l, action_dim, horizon):
-    if not float(lam) > 0:
-        raise ValueError(f"lam must be > 0, got {lam}")
-    if not float(beta) >= 0:
-        raise ValueError(f"beta must be >= 0, got {beta}")
-    if not float(l) > 0:
-        raise ValueError(f"l must be > 0, got {l}")
+_TABLE_KEYS = ("format_version", "mean", "gain", "dt", "horizon", "lam", "beta", "l", "action_dim",
+               "gmm_weights", "gmm_means", "gmm_covariances", "source_sha256", "fit_seed")
+
+
+def _check_params(lam, beta, l, action_dim):
+    _check_positive("lam", lam)
+    _check_nonnegative("beta", beta)
+    _check_positive("l", l)
     if action_dim not in (4, 6):
         raise ValueError(f"action_dim must be 4 or 6, got {action_dim}")
-    if int(horizon) != horizon or horizon < 0:
-        raise ValueError(f"horizon must be a whole number >= 0, got {horizon}")
 
 
 def build_kmp_tables(
@@ -220,7 +209,7 @@ def build_kmp_tables(
     gmm: the fitted GMM over (s, eta) with O = 6 outputs. See the module docstring for the
     window and the 4D embedding.
     """
-    _check_params(lam, beta, l, action_dim, horizon)
+    _check_params(lam, beta, l, action_dim)
     if gmm.output_dim != 6:
         raise ValueError(f"gmm must model the 6D relative pose; it has {gmm.output_dim} outputs")
     windows = reference_window(dt, horizon)  # (S, W)
