@@ -113,7 +113,7 @@ def _machine() -> dict:
                     cpu = line.split(":", 1)[1].strip()
                     break
     except OSError:
-        pass
+        pass  # no /proc/cpuinfo (not Linux): keep platform's name
     info = dict(cpu=cpu, cores=os.cpu_count(), python=platform.python_version(), torch=torch.__version__,
                 torch_threads=torch.get_num_threads(), warp=wp.config.version)
     if torch.cuda.is_available():
