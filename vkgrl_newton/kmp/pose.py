@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -148,7 +149,7 @@ def eta_to_pose(eta, p_target, psi_ref: float) -> tuple[torch.Tensor, torch.Tens
     return p_target + eta[..., :3], quat_mul(q_ref.expand_as(q_rel), q_rel)
 
 
-def unwrap_rotation_vectors(rotvec) -> "np.ndarray":
+def unwrap_rotation_vectors(rotvec) -> np.ndarray:
     """Make a sequence of rotation vectors (T, 3) continuous across the log map's wrap at pi.
 
     log() returns angles in [0, pi]; a rotation passing through pi flips to the antipodal
@@ -156,8 +157,6 @@ def unwrap_rotation_vectors(rotvec) -> "np.ndarray":
     relative to the previous sample's winding) closest to its predecessor, so that KMP sees a
     smooth trajectory (e.g. a nut turned past 180 degrees). exp() of the result is unchanged.
     """
-    import numpy as np
-
     r = np.array(rotvec, dtype=np.float64, copy=True)
     if r.ndim != 2 or r.shape[1] != 3:
         raise ValueError(f"rotvec must have shape (T, 3), got {r.shape}")
