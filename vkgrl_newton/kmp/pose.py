@@ -27,6 +27,8 @@ __all__ = [
     "quat_exp",
     "quat_log",
     "quat_from_euler_xyz",
+    "euler_xyz_from_quat",
+    "quat_rotate",
     "reference_quat",
     "pose_to_eta",
     "eta_to_pose",
@@ -119,6 +121,26 @@ def quat_from_euler_xyz(roll, pitch, yaw) -> torch.Tensor:
         ),
         dim=-1,
     )
+
+
+def euler_xyz_from_quat(q) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(roll, pitch, yaw) of an xyzw quaternion, the inverse of `quat_from_euler_xyz`.
+
+    Pitch in [-pi/2, pi/2], roll and yaw in (-pi, pi]; as Isaac Lab's `euler_xyz_from_quat`.
+    """
+    x, y, z, w = _as_tensor(q).unbind(-1)
+    roll = torch.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = torch.asin(torch.clamp(2.0 * (w * y - z * x), -1.0, 1.0))
+    yaw = torch.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def quat_rotate(q, v) -> torch.Tensor:
+    """Rotate (..., 3) vectors v by (..., 4) xyzw quaternions q."""
+    q, v = _as_tensor(q), _as_tensor(v)
+    u, w = q[..., :3], q[..., 3:]
+    t = 2.0 * torch.cross(u, v, dim=-1)
+    return v + w * t + torch.cross(u, t, dim=-1)
 
 
 def reference_quat(psi_ref: float, dtype=torch.float64, device=None) -> torch.Tensor:

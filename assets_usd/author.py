@@ -1,0 +1,539 @@
+"""Author the USD stages the simulator loads: `python assets_usd/author.py [--check]`.
+
+Writes, deterministically (same bytes on every run), next to this file:
+- franka_panda.usda  the Franka Emika Panda arm and hand, fixed base at the origin;
+- peg_insert.usda    the PegInsert parts: table, socket (fixed asset) and peg (held asset).
+
+`--check` regenerates into memory and fails if a file on disk differs (used by the tests, so
+the committed stages never drift from this script).
+
+Units: metres, kilograms, seconds; Z up. Quaternions in USD are (w, x, y, z); everything else
+in this project uses (x, y, z, w).
+
+Where the numbers come from (shared/reference/franka_facts.md unless noted):
+- Kinematics: Franka's modified-DH table (Franka interface specification) written as a body
+  tree, each arm joint rotating about its body's local z. Joint limits and torque limits from
+  the same specification.
+- Inertial parameters: the identified values of Gaz et al., RA-L 2019 ("Dynamic Identification
+  of the Franka Emika Panda Robot With Retrieval of Feasible Parameters Using Penalty-Based
+  Optimization"), also used by the MuJoCo Menagerie model. Inertia tensors are about the COM in
+  the body frame; USD wants principal moments + principal axes, computed here by eigh.
+- Joint armature: 0.3 (joints 1-4), 0.11 (joints 5-7), 0.15 (fingers), Isaac Lab's Newton port of
+  Factory (reference/isaaclab_factory_facts.md section 11).
+- Fingers: prismatic 0..0.04 m along +y of each finger frame, the right finger rotated 180 deg
+  about z; mimic-coupled (right follows left). Position drive ke 2000 N/m, kd 20 N s/m
+  (reference/peg_grip_cpu_facts.md section 7: measured to hold the peg with a 20 N squeeze at
+  4 substeps). Finger pad boxes as in the Menagerie model.
+- TCP: Isaac Lab Factory's `panda_fingertip_centered`, 0.112071 m along the hand's z
+  (hand -> finger origin 0.0584 + finger origin -> bottom of the pads 0.053671, IsaacGymEnvs
+  factory_asset_info_franka_table.yaml). Authored as a site (NewtonSiteAPI) named `tcp`.
+- Link collision capsules: a rough hull of each link (this script's own choice: segment from a
+  link's origin to its child's, radius by link size). They are authored as colliders, as a robot
+  description should be; the simulator lets only the finger pads touch the task parts
+  (design.md: link shapes that never touch the parts change nothing and cost about 25 %).
+- PegInsert parts: Isaac Lab Factory's Peg8mm / Hole8mm (reference/isaaclab_factory_facts.md
+  section 2): peg diameter 7.986 mm, length 50 mm, 0.019 kg, origin at its bottom face; hole
+  diameter 8.1 mm, 25 mm deep, origin at its base (the hole bottom). The round hole is a ring of
+  16 boxes whose inner faces form a regular 16-gon with apothem 4.05 mm, a 0.75 mm 45-degree
+  chamfer ring at the entry, and a bottom plate (reference/peg_grip_cpu_facts.md: 160/162
+  scripted insertions succeeded with this geometry on CPU). Table: Isaac Lab's Newton port,
+  1.2 x 0.6 x 0.04 m centred at (0.55, 0, -0.02), top at z = 0.
+- Friction: 0.75 on the robot and the parts (Factory's `set_friction`), 0.6 on the socket
+  (peg_grip_cpu_facts.md section 7).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade, Vt
+
+HERE = Path(__file__).resolve().parent
+FRANKA_FILE = "franka_panda.usda"
+PEG_INSERT_FILE = "peg_insert.usda"
+
+# ---------------------------------------------------------------------------------------------
+# Franka Panda facts
+
+# (name, parent, pos in parent, quat (w, x, y, z) in parent)
+ARM_BODY_TREE = [
+    ("link0", None, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)),
+    ("link1", "link0", (0.0, 0.0, 0.333), (1.0, 0.0, 0.0, 0.0)),
+    ("link2", "link1", (0.0, 0.0, 0.0), (0.70710678, -0.70710678, 0.0, 0.0)),
+    ("link3", "link2", (0.0, -0.316, 0.0), (0.70710678, 0.70710678, 0.0, 0.0)),
+    ("link4", "link3", (0.0825, 0.0, 0.0), (0.70710678, 0.70710678, 0.0, 0.0)),
+    ("link5", "link4", (-0.0825, 0.384, 0.0), (0.70710678, -0.70710678, 0.0, 0.0)),
+    ("link6", "link5", (0.0, 0.0, 0.0), (0.70710678, 0.70710678, 0.0, 0.0)),
+    ("link7", "link6", (0.088, 0.0, 0.0), (0.70710678, 0.70710678, 0.0, 0.0)),
+    ("hand", "link7", (0.0, 0.0, 0.107), (0.92387953, 0.0, 0.0, -0.38268343)),
+    ("left_finger", "hand", (0.0, 0.0, 0.0584), (1.0, 0.0, 0.0, 0.0)),
+    ("right_finger", "hand", (0.0, 0.0, 0.0584), (0.0, 0.0, 0.0, 1.0)),
+]
+
+# joint i (1..7): limits (rad), max velocity (rad/s), max torque (N m)
+ARM_JOINT_LIMITS = [
+    (-2.8973, 2.8973, 2.175, 87.0),
+    (-1.7628, 1.7628, 2.175, 87.0),
+    (-2.8973, 2.8973, 2.175, 87.0),
+    (-3.0718, -0.0698, 2.175, 87.0),
+    (-2.8973, 2.8973, 2.61, 12.0),
+    (-0.0175, 3.7525, 2.61, 12.0),
+    (-2.8973, 2.8973, 2.61, 12.0),
+]
+ARM_ARMATURE = (0.3, 0.3, 0.3, 0.3, 0.11, 0.11, 0.11)
+FINGER_ARMATURE = 0.15
+FINGER_LIMIT = (0.0, 0.04)  # m, each finger
+FINGER_DRIVE_KE = 2000.0  # N/m
+FINGER_DRIVE_KD = 20.0  # N s/m
+FINGER_MAX_FORCE = 70.0  # N, Franka's continuous grasp force
+
+# name: (mass, com, (ixx, iyy, izz, ixy, ixz, iyz)) about the COM, body frame
+INERTIALS = {
+    "link0": (0.629769, (-0.041018, -0.00014, 0.049974), (0.00315, 0.00388, 0.004285, 8.2904e-7, 0.00015, 8.2299e-6)),
+    "link1": (4.970684, (0.003875, 0.002081, -0.04762), (0.70337, 0.70661, 0.009117, -0.000139, 0.006772, 0.019169)),
+    "link2": (0.646926, (-0.003141, -0.02872, 0.003495), (0.007962, 0.02811, 0.025995, -0.003925, 0.010254, 0.000704)),
+    "link3": (3.228604, (0.027518, 0.039252, -0.066502), (0.037242, 0.036155, 0.01083, -0.004761, -0.011396, -0.012805)),
+    "link4": (3.587895, (-0.05317, 0.104419, 0.027454), (0.025853, 0.019552, 0.028323, 0.007796, -0.001332, 0.008641)),
+    "link5": (1.225946, (-0.011953, 0.041065, -0.038437), (0.035549, 0.029474, 0.008627, -0.002117, -0.004037, 0.000229)),
+    "link6": (1.666555, (0.060149, -0.014117, -0.010517), (0.001964, 0.004354, 0.005433, 0.000109, -0.001158, 0.000341)),
+    "link7": (0.735522, (0.010517, -0.004252, 0.061597), (0.012516, 0.010027, 0.004815, -0.000428, -0.001196, -0.000741)),
+    "hand": (0.73, (-0.01, 0.0, 0.03), (0.001, 0.0025, 0.0017, 0.0, 0.0, 0.0)),
+    "left_finger": (0.015, (0.0, 0.0, 0.0), (2.375e-6, 2.375e-6, 7.5e-7, 0.0, 0.0, 0.0)),
+    "right_finger": (0.015, (0.0, 0.0, 0.0), (2.375e-6, 2.375e-6, 7.5e-7, 0.0, 0.0, 0.0)),
+}
+
+# Finger pad collision boxes in the finger frame: (half sizes, centre) (Menagerie)
+FINGER_PADS = [
+    ((0.0085, 0.004, 0.0085), (0.0, 0.0055, 0.0445)),
+    ((0.003, 0.002, 0.003), (0.0055, 0.002, 0.05)),
+    ((0.003, 0.002, 0.003), (-0.0055, 0.002, 0.05)),
+    ((0.003, 0.002, 0.0035), (0.0055, 0.002, 0.0395)),
+    ((0.003, 0.002, 0.0035), (-0.0055, 0.002, 0.0395)),
+]
+# Finger body (visual + collider, not touching the parts): a box behind the pads
+FINGER_BODY_BOX = ((0.01, 0.008, 0.022), (0.0, 0.0175, 0.022))
+
+TCP_OFFSET_HAND = (0.0, 0.0, 0.112071)
+
+# Link capsules in the link frame: (p0, p1, radius)
+LINK_CAPSULES = {
+    "link0": ((-0.04, 0.0, 0.03), (0.0, 0.0, 0.19), 0.07),
+    "link1": ((0.0, 0.0, -0.19), (0.0, 0.0, -0.03), 0.065),
+    "link2": ((0.0, 0.0, -0.06), (0.0, -0.15, 0.0), 0.065),
+    "link3": ((0.0, 0.0, -0.12), (0.08, 0.0, 0.0), 0.06),
+    "link4": ((0.0, 0.0, 0.0), (-0.08, 0.1, 0.0), 0.06),
+    "link5": ((0.0, 0.0, -0.22), (0.0, 0.08, -0.02), 0.055),
+    "link6": ((0.0, 0.0, -0.02), (0.088, 0.0, 0.0), 0.05),
+    "link7": ((0.0, 0.0, 0.03), (0.0, 0.0, 0.09), 0.045),
+}
+HAND_BOX = ((0.025, 0.1, 0.03), (0.0, 0.0, 0.03))  # half sizes, centre in the hand frame
+
+# Reset/null-space posture of Isaac Lab Factory (reference/isaaclab_factory_facts.md sections 3, 5.4)
+FACTORY_RESET_JOINTS = (1.5178e-3, -0.19651, -1.4364e-3, -1.9761, -2.7717e-4, 1.7796, 0.78556)
+
+ROBOT_FRICTION = 0.75
+
+# ---------------------------------------------------------------------------------------------
+# PegInsert facts
+
+PEG_DIAMETER = 0.007986
+PEG_LENGTH = 0.050
+PEG_MASS = 0.019
+HOLE_DIAMETER = 0.0081
+HOLE_DEPTH = 0.025
+HOLE_SEGMENTS = 16
+HOLE_CHAMFER = 0.00075
+SOCKET_WALL = 0.006  # radial wall thickness
+SOCKET_BOTTOM = 0.005  # bottom plate thickness, below the hole bottom (socket origin)
+SOCKET_NOMINAL_POS = (0.6, 0.0, 0.05)  # Factory's default fixed-asset position
+TABLE_HALF = (0.6, 0.3, 0.02)
+TABLE_POS = (0.55, 0.0, -0.02)
+PART_FRICTION = 0.75
+SOCKET_FRICTION = 0.6
+
+COLORS = {
+    "link": (0.92, 0.92, 0.92),
+    "hand": (0.2, 0.2, 0.22),
+    "pad": (0.1, 0.1, 0.1),
+    "peg": (0.95, 0.5, 0.1),
+    "socket": (0.15, 0.35, 0.8),
+    "table": (0.55, 0.4, 0.25),
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# small maths (float64)
+
+
+def quat_wxyz_to_matrix(q) -> np.ndarray:
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat_wxyz(r: np.ndarray) -> tuple[float, float, float, float]:
+    """Rotation matrix -> unit quaternion (w >= 0), Shepperd's method."""
+    t = np.trace(r)
+    if t > 0:
+        s = math.sqrt(t + 1.0) * 2
+        q = (0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s)
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        q = ((r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s)
+    elif r[1, 1] > r[2, 2]:
+        s = math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        q = ((r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s)
+    else:
+        s = math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        q = ((r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s)
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    if q[0] < 0:
+        q = -q
+    return tuple(float(v) for v in q)
+
+
+def principal_inertia(inertia6) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+    """(ixx, iyy, izz, ixy, ixz, iyz) -> principal moments and the principal-axes quat (w, x, y, z)."""
+    ixx, iyy, izz, ixy, ixz, iyz = inertia6
+    tensor = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+    moments, axes = np.linalg.eigh(tensor)
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] = -axes[:, 2]
+    return tuple(float(m) for m in moments), matrix_to_quat_wxyz(axes)
+
+
+def body_world_poses() -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """World pose (position, rotation matrix) of every robot body at q = 0."""
+    poses: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for name, parent, pos, quat in ARM_BODY_TREE:
+        r_local = quat_wxyz_to_matrix(quat)
+        if parent is None:
+            poses[name] = (np.array(pos, dtype=float), r_local)
+        else:
+            p_parent, r_parent = poses[parent]
+            poses[name] = (p_parent + r_parent @ np.array(pos), r_parent @ r_local)
+    return poses
+
+
+# ---------------------------------------------------------------------------------------------
+# USD helpers
+
+
+def _new_stage(default_prim: str) -> Usd.Stage:
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdPhysics.SetStageKilogramsPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, f"/{default_prim}")
+    stage.SetDefaultPrim(root.GetPrim())
+    return stage
+
+
+def _set_pose(xformable: UsdGeom.Xformable, pos, quat_wxyz=(1.0, 0.0, 0.0, 0.0)) -> None:
+    xformable.ClearXformOpOrder()
+    xformable.AddTranslateOp(precision=UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*pos))
+    xformable.AddOrientOp(precision=UsdGeom.XformOp.PrecisionDouble).Set(Gf.Quatd(quat_wxyz[0], *quat_wxyz[1:]))
+
+
+def _material(stage: Usd.Stage, path: str, friction: float) -> UsdShade.Material:
+    mat = UsdShade.Material.Define(stage, path)
+    api = UsdPhysics.MaterialAPI.Apply(mat.GetPrim())
+    api.CreateStaticFrictionAttr(friction)
+    api.CreateDynamicFrictionAttr(friction)
+    api.CreateRestitutionAttr(0.0)
+    return mat
+
+
+def _bind_physics_material(prim: Usd.Prim, material: UsdShade.Material) -> None:
+    UsdShade.MaterialBindingAPI.Apply(prim).Bind(
+        material, UsdShade.Tokens.weakerThanDescendants, materialPurpose="physics"
+    )
+
+
+def _collider(prim: Usd.Prim, material: UsdShade.Material | None) -> None:
+    UsdPhysics.CollisionAPI.Apply(prim)
+    if material is not None:
+        _bind_physics_material(prim, material)
+
+
+def _box(stage, path, half, pos, quat_wxyz=(1.0, 0.0, 0.0, 0.0), color=(0.5, 0.5, 0.5), material=None, collide=True):
+    cube = UsdGeom.Cube.Define(stage, path)
+    cube.CreateSizeAttr(2.0)
+    _set_pose(cube, pos, quat_wxyz)
+    cube.AddScaleOp(precision=UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*half))
+    cube.CreateDisplayColorAttr([Gf.Vec3f(*color)])
+    if collide:
+        _collider(cube.GetPrim(), material)
+    return cube
+
+
+def _capsule(stage, path, p0, p1, radius, color, material=None):
+    """Capsule between two points (z-axis capsule rotated onto the segment)."""
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    axis = p1 - p0
+    length = float(np.linalg.norm(axis))
+    z = axis / length
+    # rotation taking +z onto the segment direction
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    quat = matrix_to_quat_wxyz(np.stack([x, y, z], axis=1))
+    cap = UsdGeom.Capsule.Define(stage, path)
+    cap.CreateAxisAttr(UsdGeom.Tokens.z)
+    cap.CreateRadiusAttr(radius)
+    cap.CreateHeightAttr(length)
+    _set_pose(cap, tuple((p0 + p1) / 2), quat)
+    cap.CreateDisplayColorAttr([Gf.Vec3f(*color)])
+    _collider(cap.GetPrim(), material)
+    return cap
+
+
+def _mass(prim: Usd.Prim, mass: float, com, inertia6) -> None:
+    api = UsdPhysics.MassAPI.Apply(prim)
+    api.CreateMassAttr(mass)
+    api.CreateCenterOfMassAttr(Gf.Vec3f(*com))
+    moments, axes = principal_inertia(inertia6)
+    api.CreateDiagonalInertiaAttr(Gf.Vec3f(*moments))
+    api.CreatePrincipalAxesAttr(Gf.Quatf(axes[0], *axes[1:]))
+
+
+def _joint_frames(joint, body0_path, body1_path, pos0, quat0_wxyz) -> None:
+    if body0_path is not None:
+        joint.CreateBody0Rel().SetTargets([body0_path])
+    joint.CreateBody1Rel().SetTargets([body1_path])
+    joint.CreateLocalPos0Attr(Gf.Vec3f(*pos0))
+    joint.CreateLocalRot0Attr(Gf.Quatf(quat0_wxyz[0], *quat0_wxyz[1:]))
+    joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.0))
+    joint.CreateLocalRot1Attr(Gf.Quatf(1.0, 0.0, 0.0, 0.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# stages
+
+
+def author_franka() -> Usd.Stage:
+    stage = _new_stage("franka")
+    root = stage.GetDefaultPrim()
+    UsdPhysics.ArticulationRootAPI.Apply(root)
+    material = _material(stage, "/franka/materials/robot", ROBOT_FRICTION)
+    poses = body_world_poses()
+    parent_of = {name: parent for name, parent, _, _ in ARM_BODY_TREE}
+    local = {name: (pos, quat) for name, _, pos, quat in ARM_BODY_TREE}
+
+    for name, _, _, _ in ARM_BODY_TREE:
+        body = UsdGeom.Xform.Define(stage, f"/franka/{name}")
+        pos, rot = poses[name]
+        _set_pose(body, tuple(pos), matrix_to_quat_wxyz(rot))
+        UsdPhysics.RigidBodyAPI.Apply(body.GetPrim())
+        _mass(body.GetPrim(), *INERTIALS[name])
+
+    for name, (p0, p1, radius) in LINK_CAPSULES.items():
+        _capsule(stage, f"/franka/{name}/collision_capsule", p0, p1, radius, COLORS["link"], material)
+    _box(stage, "/franka/hand/collision_box", HAND_BOX[0], HAND_BOX[1], color=COLORS["hand"], material=material)
+    for finger in ("left_finger", "right_finger"):
+        _box(stage, f"/franka/{finger}/collision_body", FINGER_BODY_BOX[0], FINGER_BODY_BOX[1],
+             color=COLORS["hand"], material=material)
+        for k, (half, centre) in enumerate(FINGER_PADS):
+            _box(stage, f"/franka/{finger}/pad_{k}", half, centre, color=COLORS["pad"], material=material)
+
+    # TCP site: fingertip centre, hand orientation
+    # (a site is a non-colliding reference shape; Newton loads sites only from geometric prims)
+    tcp = UsdGeom.Sphere.Define(stage, "/franka/hand/tcp")
+    tcp.CreateRadiusAttr(0.002)
+    _set_pose(tcp, TCP_OFFSET_HAND)
+    tcp.CreatePurposeAttr(UsdGeom.Tokens.guide)
+    tcp.GetPrim().AddAppliedSchema("NewtonSiteAPI")
+
+    joints = UsdGeom.Scope.Define(stage, "/franka/joints")
+    del joints
+    fixed = UsdPhysics.FixedJoint.Define(stage, "/franka/joints/base_fixed")
+    _joint_frames(fixed, None, "/franka/link0", (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
+    for i in range(1, 8):
+        child = f"link{i}"
+        lo, hi, vmax, tmax = ARM_JOINT_LIMITS[i - 1]
+        joint = UsdPhysics.RevoluteJoint.Define(stage, f"/franka/joints/joint{i}")
+        _joint_frames(joint, f"/franka/{parent_of[child]}", f"/franka/{child}", *local[child])
+        joint.CreateAxisAttr(UsdPhysics.Tokens.z)
+        joint.CreateLowerLimitAttr(math.degrees(lo))  # UsdPhysics revolute limits are in degrees
+        joint.CreateUpperLimitAttr(math.degrees(hi))
+        # a drive with zero gains: direct torque (effort) control, capped at the rated torque
+        drive = UsdPhysics.DriveAPI.Apply(joint.GetPrim(), UsdPhysics.Tokens.angular)
+        drive.CreateStiffnessAttr(0.0)
+        drive.CreateDampingAttr(0.0)
+        drive.CreateMaxForceAttr(tmax)
+        prim = joint.GetPrim()
+        prim.CreateAttribute("newton:armature", Sdf.ValueTypeNames.Float).Set(ARM_ARMATURE[i - 1])
+        prim.CreateAttribute("newton:velocityLimit", Sdf.ValueTypeNames.Float).Set(math.degrees(vmax))
+    hand_joint = UsdPhysics.FixedJoint.Define(stage, "/franka/joints/hand_fixed")
+    _joint_frames(hand_joint, "/franka/link7", "/franka/hand", *local["hand"])
+    for finger in ("left_finger", "right_finger"):
+        joint = UsdPhysics.PrismaticJoint.Define(stage, f"/franka/joints/{finger}")
+        _joint_frames(joint, "/franka/hand", f"/franka/{finger}", *local[finger])
+        # the joint frame is the finger frame (localRot1 = identity), so +y opens both fingers
+        joint.CreateAxisAttr(UsdPhysics.Tokens.y)
+        joint.CreateLowerLimitAttr(FINGER_LIMIT[0])
+        joint.CreateUpperLimitAttr(FINGER_LIMIT[1])
+        drive = UsdPhysics.DriveAPI.Apply(joint.GetPrim(), UsdPhysics.Tokens.linear)
+        drive.CreateStiffnessAttr(FINGER_DRIVE_KE)
+        drive.CreateDampingAttr(FINGER_DRIVE_KD)
+        drive.CreateMaxForceAttr(FINGER_MAX_FORCE)
+        drive.CreateTargetPositionAttr(FINGER_LIMIT[1])
+        joint.GetPrim().CreateAttribute("newton:armature", Sdf.ValueTypeNames.Float).Set(FINGER_ARMATURE)
+    # right finger mimics the left (Franka's coupled gripper)
+    right = stage.GetPrimAtPath("/franka/joints/right_finger")
+    right.AddAppliedSchema("NewtonMimicAPI")
+    right.CreateRelationship("newton:mimicJoint").SetTargets([Sdf.Path("/franka/joints/left_finger")])
+    right.CreateAttribute("newton:mimicCoef0", Sdf.ValueTypeNames.Float).Set(0.0)
+    right.CreateAttribute("newton:mimicCoef1", Sdf.ValueTypeNames.Float).Set(1.0)
+
+    root.SetCustomDataByKey("vkgrl:factory_reset_joints", Vt.DoubleArray(list(FACTORY_RESET_JOINTS)))
+    return stage
+
+
+@dataclass(frozen=True)
+class BoxPiece:
+    half: tuple[float, float, float]
+    pos: tuple[float, float, float]
+    quat_wxyz: tuple[float, float, float, float]
+
+
+def socket_pieces() -> list[tuple[str, BoxPiece]]:
+    """The socket as boxes in its own frame (origin at the hole bottom on the axis, z up).
+
+    Per ring segment k at angle theta_k: a wall box whose inner face is the 16-gon flat at the
+    apothem r up to the chamfer foot, an upper box whose inner face is at r + c, and a 45-degree
+    box whose face runs from (r, top - c) to (r + c, top). Boxes reach tangentially to the
+    polygon's outer corners so neighbours overlap behind the faces (no gaps). A bottom plate
+    closes the hole below z = 0.
+    """
+    r = HOLE_DIAMETER / 2
+    c = HOLE_CHAMFER
+    t = SOCKET_WALL
+    top = HOLE_DEPTH
+    n = HOLE_SEGMENTS
+    tan_half = math.tan(math.pi / n)
+    pieces: list[tuple[str, BoxPiece]] = []
+    for k in range(n):
+        theta = 2 * math.pi * k / n
+        cos_t, sin_t = math.cos(theta), math.sin(theta)
+        yaw = (math.cos(theta / 2), 0.0, 0.0, math.sin(theta / 2))  # local x radial, y tangential
+        half_tan = (r + t) * tan_half
+        # wall, z in [0, top - c]
+        rc = r + t / 2
+        pieces.append((f"wall_{k:02d}", BoxPiece((t / 2, half_tan, (top - c) / 2), (rc * cos_t, rc * sin_t, (top - c) / 2), yaw)))
+        # upper ring, z in [top - c, top], inner face at r + c
+        ru = r + c + (t - c) / 2
+        pieces.append((f"upper_{k:02d}", BoxPiece(((t - c) / 2, half_tan, c / 2), (ru * cos_t, ru * sin_t, top - c / 2), yaw)))
+        # chamfer: face exactly from (r, top - c) to (r + c, top), box behind it (outward, downward).
+        # No overhang along the face: 0.1 mm past the lower end already reaches 0.07 mm into the
+        # 0.057 mm radial clearance and jams the peg at the chamfer foot (measured).
+        h = 0.002
+        mid_r, mid_z = r + c / 2, top - c / 2
+        cr = mid_r + h / 2 / math.sqrt(2)
+        cz = mid_z - h / 2 / math.sqrt(2)
+        # +45 degrees about the local tangential (y) axis puts the box's x (thickness) along
+        # (1, 0, -1)/sqrt2, behind the face, and its z along the face (1, 0, 1)/sqrt2
+        tilt = (math.cos(math.pi / 8), 0.0, math.sin(math.pi / 8), 0.0)  # (w, x, y, z)
+        quat = _quat_mul_wxyz(yaw, tilt)
+        pieces.append((f"chamfer_{k:02d}", BoxPiece((h / 2, half_tan, c / math.sqrt(2)), (cr * cos_t, cr * sin_t, cz), quat)))
+    outer = r + t
+    pieces.append(("bottom", BoxPiece((outer, outer, SOCKET_BOTTOM / 2), (0.0, 0.0, -SOCKET_BOTTOM / 2), (1.0, 0.0, 0.0, 0.0))))
+    return pieces
+
+
+def _quat_mul_wxyz(a, b):
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def author_peg_insert() -> Usd.Stage:
+    stage = _new_stage("peg_insert")
+    part_material = _material(stage, "/peg_insert/materials/part", PART_FRICTION)
+    socket_material = _material(stage, "/peg_insert/materials/socket", SOCKET_FRICTION)
+
+    table = UsdGeom.Xform.Define(stage, "/peg_insert/table")
+    del table
+    _box(stage, "/peg_insert/table/top", TABLE_HALF, TABLE_POS, color=COLORS["table"], material=part_material)
+
+    # the fixed asset: static colliders under one frame; the simulator moves the frame per reset
+    socket = UsdGeom.Xform.Define(stage, "/peg_insert/socket")
+    _set_pose(socket, SOCKET_NOMINAL_POS)
+    socket.GetPrim().SetCustomDataByKey("vkgrl:role", "fixed_asset")
+    for name, piece in socket_pieces():
+        _box(stage, f"/peg_insert/socket/{name}", piece.half, piece.pos, piece.quat_wxyz,
+             color=COLORS["socket"], material=socket_material)
+
+    # the held asset: origin at the peg's bottom face, axis +z; placed above the socket
+    peg = UsdGeom.Xform.Define(stage, "/peg_insert/peg")
+    _set_pose(peg, (SOCKET_NOMINAL_POS[0], SOCKET_NOMINAL_POS[1], SOCKET_NOMINAL_POS[2] + HOLE_DEPTH + 0.02))
+    peg.GetPrim().SetCustomDataByKey("vkgrl:role", "held_asset")
+    UsdPhysics.RigidBodyAPI.Apply(peg.GetPrim())
+    radius = PEG_DIAMETER / 2
+    i_axial = 0.5 * PEG_MASS * radius**2
+    i_trans = PEG_MASS * (3 * radius**2 + PEG_LENGTH**2) / 12
+    _mass(peg.GetPrim(), PEG_MASS, (0.0, 0.0, PEG_LENGTH / 2), (i_trans, i_trans, i_axial, 0.0, 0.0, 0.0))
+    cyl = UsdGeom.Cylinder.Define(stage, "/peg_insert/peg/collision_cylinder")
+    cyl.CreateAxisAttr(UsdGeom.Tokens.z)
+    cyl.CreateRadiusAttr(radius)
+    cyl.CreateHeightAttr(PEG_LENGTH)
+    _set_pose(cyl, (0.0, 0.0, PEG_LENGTH / 2))
+    cyl.CreateDisplayColorAttr([Gf.Vec3f(*COLORS["peg"])])
+    _collider(cyl.GetPrim(), part_material)
+    return stage
+
+
+STAGES = {FRANKA_FILE: author_franka, PEG_INSERT_FILE: author_peg_insert}
+
+
+def stage_text(stage: Usd.Stage) -> str:
+    text = stage.GetRootLayer().ExportToString()
+    # the exporter writes a doc line naming the in-memory layer; keep the output reproducible
+    lines = [ln for ln in text.splitlines() if not ln.strip().startswith('doc = """Generated from Composed Stage')]
+    header = "#usda 1.0\n"
+    body = "\n".join(lines[1:]) if lines and lines[0].startswith("#usda") else "\n".join(lines)
+    return header + body.rstrip() + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--check", action="store_true", help="fail if a stage on disk differs from this script's output")
+    parser.add_argument("--out-dir", type=Path, default=HERE)
+    args = parser.parse_args(argv)
+    stale = []
+    for filename, author in STAGES.items():
+        text = stage_text(author())
+        path = args.out_dir / filename
+        if args.check:
+            if not path.exists() or path.read_text() != text:
+                stale.append(str(path))
+            continue
+        tmp = path.with_suffix(".usda.tmp")
+        tmp.write_text(text)
+        tmp.replace(path)
+        print(f"wrote {path}")
+    if stale:
+        print("stale (rerun `python assets_usd/author.py`): " + ", ".join(stale), file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

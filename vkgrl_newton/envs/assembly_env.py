@@ -1,0 +1,724 @@
+"""The vectorized assembly env: torch tensors in and out on the sim device, rsl-rl `VecEnv` interface.
+
+One control step (1/15 s) = 8 physics steps of 1/120 s (thesis Table 5.1), each of `substeps`
+solver substeps; the task-space impedance controller (kernels/osc.py) runs every substep on a
+Jacobian and mass matrix from Newton, and the contact forces on the gripper group are reduced
+(kernels/contact_forces.py) once per physics step.
+
+Observation (thesis eq. 5.5): [s_t, tcp_pos - target_frame_pos (3), tcp_quat xyzw (4)], plus in
+Forge the smoothed contact force (3, + N(0, 1 N) noise), plus an optional vision-latent slot
+(`vision_latent_dim`, filled by `set_vision_latent`). Dimensions 8 / 11 (+16).
+
+Actions, two entry points:
+- `step(actions)`: a in [-1, 1]^D, D in {4, 6}, Factory's delta-pose mapping (isaaclab facts 5.2,
+  5.3): action EMA, then every physics step the TCP target is the current TCP pose moved by
+  a * (0.02 m, 0.097 rad), kept within 5 cm of the target frame. 4D: (x, y, z, yaw), roll stays
+  pi and pitch 0. 6D: all three rotations, with the tilt of the gripper axis from straight down
+  bounded by `max_tilt` (default 30 degrees; this project's choice: the thesis gives no bound,
+  Factory forces roll = pi and pitch = 0).
+- `step_pose(tcp_pos_w, tcp_quat_w)`: an absolute TCP pose command (world frame), held for the
+  control step; the KGRL path (KMP prior + null-space action) uses it.
+
+Reward (thesis 5.2): Factory 4 per step in the success state (held part centred on the fixed part
+within 2.5 mm and seated within 1 mm, design.md); Forge adds -0.001 (|dp|/0.02 + sum |d angle|/0.097)
+(eqs. 5.11-5.18, dp = tcp - command) and -max(0, |f_smooth| - 7.5 N) (eq. 5.19).
+
+Episodes last 150 steps (10 s) and end by time-out only, all worlds together (Factory). A
+physics blow-up (NaN, runaway velocity, a part thrown away) in one world resets that world
+alone and is counted in `extras["log"]["/physics_resets"]`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import gymnasium as gym
+import numpy as np
+import torch
+import warp as wp
+from rsl_rl.env import VecEnv
+from tensordict import TensorDict
+
+import newton
+
+from ..kernels.contact_forces import contact_force_reduce, contact_force_reset, contact_force_update
+from ..kernels.kmp_horizon import vec6f
+from ..kernels.osc import osc_torques
+from ..kmp.pose import euler_xyz_from_quat, quat_from_euler_xyz, quat_mul, quat_rotate
+from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene, make_solver
+from ..tasks import get_task
+
+__all__ = ["EnvConfig", "AssemblyEnv", "FAMILIES", "ACTION_DIMS", "TASK_GEOMETRY"]
+
+FAMILIES = ("factory", "forge")
+ACTION_DIMS = (4, 6)
+
+# Factory / Forge controller facts (reference/isaaclab_factory_facts.md sections 5, 9)
+FACTORY_KP = (100.0, 100.0, 100.0, 30.0, 30.0, 30.0)
+FORGE_KP = (565.0, 565.0, 565.0, 28.0, 28.0, 28.0)
+RESET_KP = (300.0, 300.0, 300.0, 20.0, 20.0, 20.0)
+POS_ACTION_SCALE = 0.02  # m per step at |a| = 1
+ROT_ACTION_SCALE = 0.097  # rad per step at |a| = 1
+POS_ACTION_BOUND = 0.05  # m, target kept within this box around the target frame
+FACTORY_EMA = 0.2
+# Null-space posture gains. Factory uses 10 / 2 sqrt(10); Isaac Lab's Newton port of Factory
+# disables the term, and so does this env by default: measured here, the null-space torque moved a
+# zero-action TCP by 5.8 mm in 5 control steps (the target follows the current pose every physics
+# step, so any leak of null-space torque into the task space accumulates), versus 0.0 mm without.
+NULL_KP, NULL_KD = 0.0, 0.0
+FACTORY_NULL_KP, FACTORY_NULL_KD = 10.0, 2.0 * math.sqrt(10.0)
+TORQUE_LIMIT = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
+FORCE_OBS_NOISE = 1.0  # N, Forge
+CONTACT_PENALTY_THRESHOLD = 7.5  # N, eq. 5.19
+SUCCESS_REWARD = 4.0
+TARGET_OBS_NOISE = 0.001  # m, per axis, per episode (eq. 5.23 / Factory)
+FIXED_ASSET_NOMINAL = (0.6, 0.0, 0.05)
+GRIP_SETTLE_STEPS = 30  # physics steps (0.25 s) of gripper closing at reset, Factory
+MAX_LIN_VEL, MAX_ANG_VEL = 20.0, 200.0  # beyond these a world counts as blown up
+
+
+@dataclass(frozen=True)
+class TaskGeometry:
+    """Held/fixed part facts the env needs (reference/isaaclab_factory_facts.md sections 2, 7, 8)."""
+
+    fixed_height: float  # m, fixed tip above the fixed part's origin
+    held_in_tcp: float  # m, held origin below the TCP along the gripper axis
+    held_pos_noise: tuple[float, float, float]  # in-hand noise half-ranges, held frame
+    success_z: float  # m, seated threshold
+    success_xy: float  # m, centring threshold
+    finger_open: float  # m per finger at reset
+    finger_grip_target: float  # m, drive target giving ~20 N squeeze at contact
+
+
+TASK_GEOMETRY = {
+    # Peg pads touch the 7.986 mm peg at q = 3.11 mm; ke 2000 N/m * 10 mm = 20 N
+    "PegInsert": TaskGeometry(0.025, 0.032392, (0.003, 0.0, 0.003), 0.04 * 0.025, 0.0025, 0.00499, 0.00311 - 0.010),
+}
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    task: str = "PegInsert"
+    family: str = "factory"  # "factory" | "forge"
+    action_dim: int = 6  # 4 (xyz + yaw) | 6 (xyz + roll, pitch, yaw)
+    num_envs: int = 16
+    device: str | None = None
+    seed: int = 0
+    randomize_dynamics: bool | None = None  # Forge's dynamics randomization; None: on for forge
+    vision_latent_dim: int = 0  # 0: no vision slot; 16 for the thesis's VAE latent
+    max_tilt: float = math.radians(30.0)  # 6D only: bound on the gripper axis tilt from straight down
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self):
+        get_task(self.task)
+        if self.task not in TASK_GEOMETRY:
+            raise ValueError(f"task {self.task!r} is not simulated yet; available: {sorted(TASK_GEOMETRY)}")
+        if self.family not in FAMILIES:
+            raise ValueError(f"family must be one of {FAMILIES}, got {self.family!r}")
+        if self.action_dim not in ACTION_DIMS:
+            raise ValueError(f"action_dim must be one of {ACTION_DIMS}, got {self.action_dim!r}")
+        if not isinstance(self.num_envs, int) or self.num_envs < 1:
+            raise ValueError(f"num_envs must be an integer >= 1, got {self.num_envs!r}")
+        if self.vision_latent_dim < 0:
+            raise ValueError(f"vision_latent_dim must be >= 0, got {self.vision_latent_dim!r}")
+        if not 0.0 < self.max_tilt < math.pi / 2:
+            raise ValueError(f"max_tilt must be in (0, pi/2) rad, got {self.max_tilt!r}")
+
+    @property
+    def dynamics_randomized(self) -> bool:
+        return self.family == "forge" if self.randomize_dynamics is None else bool(self.randomize_dynamics)
+
+
+def _vec(t: torch.Tensor, dtype):
+    return wp.from_torch(t.contiguous(), dtype=dtype)
+
+
+class AssemblyEnv(VecEnv):
+    """Batched PegInsert (later GearMesh, NutThread) in Newton; see the module docstring."""
+
+    def __init__(self, cfg: EnvConfig, scene: Scene | None = None):
+        self.cfg = cfg
+        self.task = get_task(cfg.task)
+        self.geometry = TASK_GEOMETRY[cfg.task]
+        sim_cfg = replace(cfg.sim, num_worlds=cfg.num_envs, device=cfg.device or cfg.sim.device)
+        if scene is None:
+            scene = build_scene(cfg.task, sim_cfg)
+        elif scene.num_worlds != cfg.num_envs or scene.task != cfg.task:
+            raise ValueError(
+                f"scene has {scene.num_worlds} worlds of {scene.task!r}, config asks {cfg.num_envs} of {cfg.task!r}"
+            )
+        self.scene = scene
+        self.model = scene.model
+        self.device = scene.device
+        self.tdev = torch.device("cuda", 0) if self.device.startswith("cuda") else torch.device("cpu")
+        self.num_envs = cfg.num_envs
+        self.num_actions = cfg.action_dim
+        self.max_episode_length = self.task.episode_steps
+        self.generator = torch.Generator(device=self.tdev).manual_seed(cfg.seed)
+        self.np_rng = np.random.default_rng(cfg.seed)
+        self.substeps = scene.config.substeps
+        self.substep_dt = scene.config.substep_dt
+
+        self.solver, self.pipeline = make_solver(scene)
+        self.contacts = self.pipeline.contacts()
+        self.observables = self.solver.observables(
+            {newton.solvers.SolverBase.ObservableKind.CONTACT_F}, contacts=self.contacts
+        )
+        self.state_0, self.state_1 = self.model.state(), self.model.state()
+        self.control = self.model.control()
+        E, dev, tdev = self.num_envs, self.device, self.tdev
+
+        # Newton articulation quantities, computed for the robots only
+        m = self.model
+        self.jacobian = wp.zeros((m.articulation_count, 6 * m.max_joints_per_articulation, m.max_dofs_per_articulation),
+                                 dtype=wp.float32, device=dev)
+        self.mass_matrix = wp.zeros((m.articulation_count, m.max_dofs_per_articulation, m.max_dofs_per_articulation),
+                                    dtype=wp.float32, device=dev)
+        self.joint_f_2d = self.control.joint_f.reshape((E, scene.dofs_per_world))
+
+        # controller buffers (torch tensors with warp views of the same memory)
+        z = lambda *shape: torch.zeros(*shape, dtype=torch.float32, device=tdev)  # noqa: E731
+        self.tcp_pos_w, self.tcp_quat_w = z(E, 3), z(E, 4)
+        self.tcp_twist_w, self.wrench_w = z(E, 6), z(E, 6)
+        self.cmd_pos_w, self.cmd_quat_w = z(E, 3), z(E, 4)
+        self.kp, self.kd, self.dead_zone = z(E, 6), z(E, 6), z(E, 6)
+        self.q_null = torch.tensor(FACTORY_NULL_JOINTS, dtype=torch.float32, device=tdev)
+        self.torque_limit = torch.tensor(TORQUE_LIMIT, dtype=torch.float32, device=tdev)
+        self._wp = {
+            "tcp_pos_w": _vec(self.tcp_pos_w, wp.vec3), "tcp_quat_w": _vec(self.tcp_quat_w, wp.quat),
+            "tcp_twist_w": _vec(self.tcp_twist_w, wp.spatial_vector), "wrench_w": _vec(self.wrench_w, vec6f),
+            "cmd_pos_w": _vec(self.cmd_pos_w, wp.vec3), "cmd_quat_w": _vec(self.cmd_quat_w, wp.quat),
+            "kp": _vec(self.kp, vec6f), "kd": _vec(self.kd, vec6f), "dead_zone": _vec(self.dead_zone, vec6f),
+            "q_null": _vec(self.q_null, wp.float32), "torque_limit": _vec(self.torque_limit, wp.float32),
+        }
+        # contact-force buffers
+        self.interaction_force_w, self.force_smoothed_w = z(E, 3), z(E, 3)
+        self.force_norm_sum, self.force_peak = z(E), z(E)
+        self.force_count = torch.zeros(E, dtype=torch.int32, device=tdev)
+        self._wp.update({
+            "interaction_force_w": _vec(self.interaction_force_w, wp.vec3),
+            "force_smoothed_w": _vec(self.force_smoothed_w, wp.vec3),
+            "force_norm_sum": _vec(self.force_norm_sum, wp.float32), "force_peak": _vec(self.force_peak, wp.float32),
+            "force_count": _vec(self.force_count, wp.int32),
+        })
+
+        # task / episode buffers
+        self.origins = torch.tensor(scene.env_origins, dtype=torch.float32, device=tdev)
+        self.fixed_pos_w, self.fixed_yaw = z(E, 3), z(E)  # fixed part origin (world) and yaw
+        self.target_frame_pos_w = z(E, 3)  # fixed tip + observation noise: the frame of obs and actions
+        self.ref_quat_w = quat_from_euler_xyz(torch.tensor(math.pi), torch.tensor(0.0),
+                                              torch.tensor(self.task.psi_ref)).float().to(tdev).expand(E, 4).contiguous()
+        self.actions_applied = z(E, cfg.action_dim)
+        self.ema = torch.full((E,), FACTORY_EMA, device=tdev)
+        self.pos_scale = torch.full((E, 3), POS_ACTION_SCALE, device=tdev)
+        self.rot_scale = torch.full((E, 3), ROT_ACTION_SCALE, device=tdev)
+        self.episode_length_buf = torch.zeros(E, dtype=torch.long, device=tdev)
+        self.step_index = torch.zeros(E, dtype=torch.int32, device=tdev)  # int32 copy for Warp kernels
+        self.success = torch.zeros(E, dtype=torch.bool, device=tdev)
+        self.first_success_step = torch.full((E,), -1, dtype=torch.long, device=tdev)
+        self.episode_reward = z(E)
+        self.vision_latent = z(E, cfg.vision_latent_dim)
+        self.physics_resets_total = 0
+        self._physics_resets_step = 0
+        self.obs_dim = 8 + (3 if cfg.family == "forge" else 0) + cfg.vision_latent_dim
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(self.obs_dim,), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(cfg.action_dim,), dtype=np.float32)
+
+        # per-world views of the flat model arrays
+        self._views: dict[int, dict[str, torch.Tensor]] = {}
+        self.shape_transform = wp.to_torch(self.model.shape_transform)  # (S, 7)
+        self.socket_shapes = wp.to_torch(scene.socket_shapes).long()  # (E, Ns)
+        self.socket_local = wp.to_torch(scene.socket_local)  # (Ns, 7)
+        self.hand_idx = wp.to_torch(scene.hand_body).long()
+        self.held_idx = wp.to_torch(scene.held_body).long()
+        self.tcp_offset = torch.tensor(scene.tcp_offset_hand, dtype=torch.float32, device=tdev)
+        self.arm_q0 = torch.tensor(FACTORY_RESET_JOINTS, dtype=torch.float32, device=tdev)
+        self.joint_lower = wp.to_torch(self.model.joint_limit_lower).view(E, -1)[:, :ARM_DOFS]
+        self.joint_upper = wp.to_torch(self.model.joint_limit_upper).view(E, -1)[:, :ARM_DOFS]
+
+        self._set_family_gains(torch.ones(E, dtype=torch.bool, device=tdev))
+        self.reset()
+
+    # ------------------------------------------------------------------------------------------
+    # views and kinematics
+
+    def _state_views(self, state) -> dict[str, torch.Tensor]:
+        key = id(state)
+        if key not in self._views:
+            E = self.num_envs
+            self._views[key] = {
+                "joint_q": wp.to_torch(state.joint_q).view(E, -1),
+                "joint_qd": wp.to_torch(state.joint_qd).view(E, -1),
+                "body_q": wp.to_torch(state.body_q),
+                "body_qd": wp.to_torch(state.body_qd),
+                "joint_q_2d": state.joint_q.reshape((E, self.scene.coords_per_world)),
+                "joint_qd_2d": state.joint_qd.reshape((E, self.scene.dofs_per_world)),
+            }
+        return self._views[key]
+
+    def _tcp_pose(self, state=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """TCP position and orientation (world) from the hand body pose."""
+        body_q = self._state_views(state or self.state_0)["body_q"]
+        hand = body_q[self.hand_idx]
+        quat = hand[:, 3:]
+        return hand[:, :3] + quat_rotate(quat, self.tcp_offset.expand_as(hand[:, :3])), quat
+
+    def held_pose(self) -> tuple[torch.Tensor, torch.Tensor]:
+        held = self._state_views(self.state_0)["body_q"][self.held_idx]
+        return held[:, :3], held[:, 3:]
+
+    # ------------------------------------------------------------------------------------------
+    # physics
+
+    def _physics_step(self, collect_forces: bool = True) -> None:
+        """One 1/120 s physics step: `substeps` x (Jacobian, mass matrix, OSC, collision, solver)."""
+        sc, m = self.scene, self.model
+        for _ in range(self.substeps):
+            s0 = self.state_0
+            v = self._state_views(s0)
+            newton.eval_jacobian(m, s0, self.jacobian, mask=sc.robot_articulation_mask)
+            newton.eval_mass_matrix(m, s0, self.mass_matrix, J=self.jacobian, mask=sc.robot_articulation_mask)
+            osc_torques(
+                jacobian=self.jacobian, mass_matrix=self.mass_matrix, robot_articulation=sc.robot_articulation,
+                hand_link=sc.hand_link, arm_dof_start=0, body_q=s0.body_q, body_qd=s0.body_qd, body_com=m.body_com,
+                hand_body=sc.hand_body, tcp_offset_hand=sc.tcp_offset_hand, joint_q=v["joint_q_2d"],
+                joint_qd=v["joint_qd_2d"], arm_q_start=0, arm_qd_start=0, target_pos_w=self._wp["cmd_pos_w"],
+                target_quat_w=self._wp["cmd_quat_w"], kp=self._wp["kp"], kd=self._wp["kd"],
+                dead_zone=self._wp["dead_zone"], q_null=self._wp["q_null"], kp_null=NULL_KP, kd_null=NULL_KD,
+                torque_limit=self._wp["torque_limit"], tcp_pos_w=self._wp["tcp_pos_w"],
+                tcp_quat_w=self._wp["tcp_quat_w"], tcp_twist_w=self._wp["tcp_twist_w"],
+                wrench_w=self._wp["wrench_w"], joint_f=self.joint_f_2d,
+            )
+            self.pipeline.collide(s0, self.contacts)
+            self.solver.step(s0, self.state_1, self.control, self.contacts, self.substep_dt,
+                             observables=self.observables)
+            self.state_0, self.state_1 = self.state_1, self.state_0
+        if collect_forces:
+            contact_force_reduce(
+                contact_count=self.contacts.rigid_contact_count, contact_shape0=self.contacts.rigid_contact_shape0,
+                contact_shape1=self.contacts.rigid_contact_shape1, contact_f=self.observables.contact_f,
+                shape_group=sc.gripper_group, shape_world=m.shape_world,
+                interaction_force_w=self._wp["interaction_force_w"],
+            )
+            contact_force_update(
+                interaction_force_w=self._wp["interaction_force_w"], force_smoothed_w=self._wp["force_smoothed_w"],
+                force_norm_sum=self._wp["force_norm_sum"], force_sample_count=self._wp["force_count"],
+                force_peak=self._wp["force_peak"],
+            )
+
+    # ------------------------------------------------------------------------------------------
+    # gains and randomization
+
+    def _set_family_gains(self, mask: torch.Tensor) -> None:
+        n = int(mask.sum())
+        if n == 0:
+            return
+        kp_nom = torch.tensor(FORGE_KP if self.cfg.family == "forge" else FACTORY_KP, device=self.tdev)
+        kp = kp_nom.expand(n, 6).clone()
+        if self.cfg.dynamics_randomized:
+            # Forge (facts 9.3): x (1 + U(0, noise)), inverted with p = 0.5
+            kp = kp * self._forge_scale(n, 6, 0.41)
+            self.pos_scale[mask] = POS_ACTION_SCALE * self._forge_scale(n, 1, 0.25).expand(n, 3)
+            self.rot_scale[mask] = ROT_ACTION_SCALE * self._forge_scale(n, 1, 0.29).expand(n, 3)
+            self.ema[mask] = 0.025 + 0.075 * torch.rand(n, device=self.tdev, generator=self.generator)
+            self.dead_zone[mask] = torch.rand(n, 1, device=self.tdev, generator=self.generator) * torch.tensor(
+                (5.0, 5.0, 5.0, 1.0, 1.0, 1.0), device=self.tdev)
+        else:
+            self.pos_scale[mask] = POS_ACTION_SCALE
+            self.rot_scale[mask] = ROT_ACTION_SCALE
+            self.ema[mask] = FACTORY_EMA
+            self.dead_zone[mask] = 0.0
+        self.kp[mask] = kp
+        self.kd[mask] = 2.0 * torch.sqrt(kp)
+
+    def _forge_scale(self, n: int, k: int, noise: float) -> torch.Tensor:
+        s = 1.0 + noise * torch.rand(n, k, device=self.tdev, generator=self.generator)
+        flip = torch.rand(n, k, device=self.tdev, generator=self.generator) < 0.5
+        return torch.where(flip, 1.0 / s, s)
+
+    def _uniform(self, n: int, lo, hi) -> torch.Tensor:
+        lo = torch.as_tensor(lo, dtype=torch.float32, device=self.tdev)
+        hi = torch.as_tensor(hi, dtype=torch.float32, device=self.tdev)
+        return lo + (hi - lo) * torch.rand(n, *lo.shape, device=self.tdev, generator=self.generator)
+
+    # ------------------------------------------------------------------------------------------
+    # reset
+
+    def reset(self) -> TensorDict:
+        """Reset every world (Factory resets all worlds together) and return the observations."""
+        self._reset_worlds(torch.ones(self.num_envs, dtype=torch.bool, device=self.tdev), settle=True)
+        return self.get_observations()
+
+    def _place_fixed_part(self, mask: torch.Tensor) -> None:
+        n = int(mask.sum())
+        task = self.task
+        pos = torch.tensor(FIXED_ASSET_NOMINAL, device=self.tdev) + self._uniform(
+            n, [-a for a in task.target_pos_noise], list(task.target_pos_noise))
+        yaw = self._uniform(n, task.target_yaw_range[0], task.target_yaw_range[1])
+        self.fixed_pos_w[mask] = self.origins[mask] + pos
+        self.fixed_yaw[mask] = yaw
+        # static socket shapes: world pose = (fixed pos, yaw) * local pose
+        q_yaw = quat_from_euler_xyz(torch.zeros_like(yaw), torch.zeros_like(yaw), yaw)  # (n, 4)
+        local = self.socket_local  # (Ns, 7)
+        ns = local.shape[0]
+        p = self.fixed_pos_w[mask][:, None, :] + quat_rotate(q_yaw[:, None, :].expand(n, ns, 4),
+                                                             local[None, :, :3].expand(n, ns, 3))
+        q = quat_mul(q_yaw[:, None, :].expand(n, ns, 4), local[None, :, 3:].expand(n, ns, 4))
+        self.shape_transform[self.socket_shapes[mask].reshape(-1)] = torch.cat((p, q), -1).reshape(-1, 7)
+        tip = self.fixed_pos_w[mask] + torch.tensor((0.0, 0.0, self.geometry.fixed_height), device=self.tdev)
+        noise = TARGET_OBS_NOISE * torch.randn(n, 3, device=self.tdev, generator=self.generator)
+        self.target_frame_pos_w[mask] = tip + noise
+
+    def _solve_ik(self, mask: torch.Tensor, pos_w: torch.Tensor, quat_w: torch.Tensor, iters: int = 40):
+        """Damped least squares (facts 5.6, lambda 0.1) on the arm joints of the masked worlds.
+
+        Kinematic only (no physics): eval_fk + eval_jacobian on the model, joints written in place.
+        Returns the final position and rotation errors (n,).
+        """
+        s = self.state_0
+        v = self._state_views(s)
+        sc = self.scene
+        idx = mask.nonzero().squeeze(1)
+        art = wp.to_torch(sc.robot_articulation).long()[idx]
+        jac_t = wp.to_torch(self.jacobian)
+        lam2 = 0.1**2
+        for _ in range(iters):
+            newton.eval_fk(self.model, s.joint_q, s.joint_qd, s)
+            newton.eval_jacobian(self.model, s, self.jacobian, mask=sc.robot_articulation_mask)
+            p, q = self._tcp_pose(s)
+            p, q = p[idx], q[idx]
+            e_p = pos_w - p
+            e_r = _orientation_error(quat_w, q)
+            err = torch.cat((e_p, e_r), -1)
+            j = jac_t[art, 6 * sc.hand_link: 6 * sc.hand_link + 6, :ARM_DOFS]  # (n, 6, 7) hand COM rows
+            com_w = self._hand_com_w(s)[idx]
+            j = _point_jacobian(j, p - com_w)
+            jjt = j @ j.transpose(1, 2) + lam2 * torch.eye(6, device=self.tdev)
+            dq = (j.transpose(1, 2) @ torch.linalg.solve(jjt, err.unsqueeze(-1))).squeeze(-1)
+            qa = v["joint_q"][idx, :ARM_DOFS] + dq
+            v["joint_q"][idx, :ARM_DOFS] = torch.clamp(qa, self.joint_lower[idx], self.joint_upper[idx])
+        newton.eval_fk(self.model, s.joint_q, s.joint_qd, s)
+        p, q = self._tcp_pose(s)
+        return (pos_w - p[idx]).norm(dim=-1), _orientation_error(quat_w, q[idx]).norm(dim=-1)
+
+    def _hand_com_w(self, state) -> torch.Tensor:
+        body_q = self._state_views(state)["body_q"]
+        hand = body_q[self.hand_idx]
+        com = wp.to_torch(self.model.body_com)[self.hand_idx]
+        return hand[:, :3] + quat_rotate(hand[:, 3:], com)
+
+    def _reset_worlds(self, mask: torch.Tensor, settle: bool) -> None:
+        """Factory's reset for the masked worlds (facts section 7).
+
+        settle=True (all worlds, at episode boundaries): fingers open, peg placed, then the gripper
+        closes for 0.25 s while the controller holds the pose. settle=False (a single world after a
+        blow-up, while the others keep running): the fingers are put at their contact opening
+        around the peg and the squeeze takes hold during the next steps.
+        """
+        n = int(mask.sum())
+        if n == 0:
+            return
+        E = self.num_envs
+        v = self._state_views(self.state_0)
+        task, geo = self.task, self.geometry
+        self._place_fixed_part(mask)
+        self._set_family_gains(mask)
+
+        # hand target above the fixed tip (facts 7.5), IK with retries from the reset posture
+        tip = self.fixed_pos_w[mask] + torch.tensor((0.0, 0.0, geo.fixed_height), device=self.tdev)
+        todo = torch.ones(n, dtype=torch.bool, device=self.tdev)
+        hand_pos = torch.zeros(n, 3, device=self.tdev)
+        hand_quat = torch.zeros(n, 4, device=self.tdev)
+        ik_fail = 0
+        midx = mask.nonzero().squeeze(1)
+        for attempt in range(4):
+            k = int(todo.sum())
+            noise = self._uniform(k, [-a for a in task.ee_pos_noise], list(task.ee_pos_noise))
+            hand_pos[todo] = tip[todo] + torch.tensor((0.0, 0.0, task.hand_init_height), device=self.tdev) + noise
+            yaw = self._uniform(k, task.ee_yaw_range[0], task.ee_yaw_range[1])
+            hand_quat[todo] = quat_from_euler_xyz(torch.full_like(yaw, math.pi), torch.zeros_like(yaw), yaw)
+            sub = torch.zeros(E, dtype=torch.bool, device=self.tdev)
+            sub[midx[todo]] = True
+            v["joint_q"][sub, :ARM_DOFS] = self.arm_q0
+            e_p, e_r = self._solve_ik(sub, hand_pos[todo], hand_quat[todo])
+            ok = (e_p < 1e-3) & (e_r < 1e-2)
+            still = todo.clone()
+            still[todo] = ~ok
+            todo = still
+            if not todo.any():
+                break
+            ik_fail += int(todo.sum())
+        self._ik_failures = ik_fail
+
+        # fingers and held part
+        hq = self.scene.held_q_start
+        fingers = slice(ARM_DOFS, ARM_DOFS + 2)
+        v["joint_q"][mask, fingers] = geo.finger_open if settle else geo.finger_grip_target + 0.010 - 0.0008
+        v["joint_qd"][mask] = 0.0
+        self._place_held_part(mask)
+        newton.eval_fk(self.model, self.state_0.joint_q, self.state_0.joint_qd, self.state_0)
+        self.state_1.assign(self.state_0)
+
+        # controller holds the current TCP pose; episode buffers
+        tcp_p, tcp_q = self._tcp_pose()
+        self.cmd_pos_w[mask] = tcp_p[mask]
+        self.cmd_quat_w[mask] = tcp_q[mask]
+        self.actions_applied[mask] = 0.0
+        self.control_finger_targets(mask, geo.finger_grip_target)
+        if settle:
+            saved = self.kp.clone(), self.kd.clone()
+            kp = torch.tensor(RESET_KP, device=self.tdev)
+            self.kp[:] = kp
+            self.kd[:] = 2.0 * torch.sqrt(kp)
+            self.kd[:, 3:] /= 10.0  # Factory's rot_deriv_scale during reset
+            for _ in range(GRIP_SETTLE_STEPS):
+                self._physics_step(collect_forces=False)
+            self.kp[:], self.kd[:] = saved
+            tcp_p, tcp_q = self._tcp_pose()
+            self.cmd_pos_w[mask] = tcp_p[mask]
+            self.cmd_quat_w[mask] = tcp_q[mask]
+        del hq
+        contact_force_reset(
+            reset_mask=wp.from_torch(mask), force_smoothed_w=self._wp["force_smoothed_w"],
+            force_norm_sum=self._wp["force_norm_sum"], force_sample_count=self._wp["force_count"],
+            force_peak=self._wp["force_peak"],
+        )
+        self.episode_length_buf[mask] = 0
+        self.step_index[mask] = 0
+        self.success[mask] = False
+        self.first_success_step[mask] = -1
+        self.episode_reward[mask] = 0.0
+        self.success_any = getattr(self, "success_any", torch.zeros(E, dtype=torch.bool, device=self.tdev))
+        self.success_any[mask] = False
+
+    def control_finger_targets(self, mask: torch.Tensor, target: float) -> None:
+        tq = wp.to_torch(self.control.joint_target_q).view(self.num_envs, -1)
+        tq[mask, ARM_DOFS:ARM_DOFS + 2] = target
+
+    def _place_held_part(self, mask: torch.Tensor) -> None:
+        """Held part in the gripper (facts 7.8): TCP flipped about its y, offset, in-hand noise."""
+        newton.eval_fk(self.model, self.state_0.joint_q, self.state_0.joint_qd, self.state_0)
+        tcp_p, tcp_q = self._tcp_pose()
+        tcp_p, tcp_q = tcp_p[mask], tcp_q[mask]
+        n = tcp_p.shape[0]
+        flip = torch.tensor((0.0, 1.0, 0.0, 0.0), device=self.tdev).expand(n, 4)  # 180 deg about y
+        held_q = quat_mul(tcp_q, flip)
+        noise = self._uniform(n, [-a for a in self.geometry.held_pos_noise], list(self.geometry.held_pos_noise))
+        offset = torch.tensor((0.0, 0.0, -self.geometry.held_in_tcp), device=self.tdev) + noise
+        held_p = tcp_p + quat_rotate(held_q, offset)
+        v = self._state_views(self.state_0)
+        hq, hqd = self.scene.held_q_start, self.scene.held_qd_start
+        v["joint_q"][mask, hq:hq + 3] = held_p - self.origins[mask] * 0.0
+        v["joint_q"][mask, hq + 3:hq + 7] = held_q
+        v["joint_qd"][mask, hqd:hqd + 6] = 0.0
+
+    # ------------------------------------------------------------------------------------------
+    # step
+
+    def get_observations(self) -> TensorDict:
+        tcp_p, tcp_q = self._tcp_pose()
+        s = (self.episode_length_buf.float() / self.max_episode_length).unsqueeze(-1)
+        parts = [s, tcp_p - self.target_frame_pos_w, tcp_q]
+        if self.cfg.family == "forge":
+            noise = FORCE_OBS_NOISE * torch.randn(self.num_envs, 3, device=self.tdev, generator=self.generator)
+            parts.append(self.force_smoothed_w + noise)
+        if self.cfg.vision_latent_dim:
+            parts.append(self.vision_latent)
+        return TensorDict({"policy": torch.cat(parts, -1)}, batch_size=[self.num_envs])
+
+    def set_vision_latent(self, z: torch.Tensor) -> None:
+        if z.shape != self.vision_latent.shape:
+            raise ValueError(f"vision latent must have shape {tuple(self.vision_latent.shape)}, got {tuple(z.shape)}")
+        self.vision_latent.copy_(z)
+
+    def _check_actions(self, actions: torch.Tensor, width: int, name: str) -> torch.Tensor:
+        if not isinstance(actions, torch.Tensor) or actions.shape != (self.num_envs, width):
+            shape = tuple(actions.shape) if hasattr(actions, "shape") else type(actions).__name__
+            raise ValueError(f"{name} must be a tensor of shape ({self.num_envs}, {width}), got {shape}")
+        actions = actions.to(self.tdev, torch.float32)
+        if not torch.isfinite(actions).all():
+            raise ValueError(f"{name} contain NaN or inf")
+        return actions
+
+    def _delta_targets(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Factory: target = current TCP pose moved by the smoothed action (world frame)."""
+        tcp_p, tcp_q = self._tcp_pose()
+        a = self.actions_applied
+        pos = tcp_p + a[:, :3] * self.pos_scale
+        if self.cfg.action_dim == 4:
+            rot = torch.zeros_like(pos)
+            rot[:, 2] = a[:, 3] * self.rot_scale[:, 2]
+        else:
+            rot = a[:, 3:6] * self.rot_scale
+        quat = quat_mul(_quat_from_rotvec(rot), tcp_q)
+        return pos, quat
+
+    def _bound_command(self, pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keep the command within 5 cm of the target frame, gripper down (4D) or tilt-bounded (6D)."""
+        pos = self.target_frame_pos_w + torch.clamp(pos - self.target_frame_pos_w, -POS_ACTION_BOUND, POS_ACTION_BOUND)
+        roll, pitch, yaw = euler_xyz_from_quat(quat)
+        if self.cfg.action_dim == 4:
+            quat = quat_from_euler_xyz(torch.full_like(yaw, math.pi), torch.zeros_like(yaw), yaw)
+        else:
+            quat = _bound_tilt(quat, self.cfg.max_tilt)
+        return pos, quat
+
+    def step(self, actions: torch.Tensor):
+        """SAC path: actions in [-1, 1]^D, Factory's delta-pose mapping (module docstring)."""
+        actions = torch.clamp(self._check_actions(actions, self.cfg.action_dim, "actions"), -1.0, 1.0)
+        ema = self.ema.unsqueeze(-1)
+        self.actions_applied = ema * actions + (1.0 - ema) * self.actions_applied
+        first_cmd = None
+        for _ in range(self.cfg.sim.decimation if hasattr(self.cfg.sim, "decimation") else 8):
+            pos, quat = self._bound_command(*self._delta_targets())
+            self.cmd_pos_w.copy_(pos)
+            self.cmd_quat_w.copy_(quat)
+            if first_cmd is None:
+                first_cmd = (pos.clone(), quat.clone())
+            self._physics_step()
+        return self._finish_step(*first_cmd)
+
+    def step_pose(self, tcp_pos_w: torch.Tensor, tcp_quat_w: torch.Tensor):
+        """KGRL path: an absolute TCP pose command (world frame), held for the control step."""
+        pos = self._check_actions(tcp_pos_w, 3, "tcp_pos_w")
+        quat = self._check_actions(tcp_quat_w, 4, "tcp_quat_w")
+        quat = quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        pos, quat = self._bound_command(pos, quat)
+        self.cmd_pos_w.copy_(pos)
+        self.cmd_quat_w.copy_(quat)
+        for _ in range(self.scene.config.decimation):
+            self._physics_step()
+        return self._finish_step(pos, quat)
+
+    def _finish_step(self, cmd_pos: torch.Tensor, cmd_quat: torch.Tensor):
+        self.episode_length_buf += 1
+        self.step_index.copy_(self.episode_length_buf.to(torch.int32))
+        held_p, _ = self.held_pose()
+        d = held_p - self.fixed_pos_w
+        success = (d[:, :2].norm(dim=-1) < self.geometry.success_xy) & (d[:, 2] < self.geometry.success_z)
+        self.success = success
+        newly = success & (self.first_success_step < 0)
+        self.first_success_step[newly] = self.episode_length_buf[newly]
+        self.success_any |= success
+
+        reward = SUCCESS_REWARD * success.float()
+        log: dict[str, float] = {}
+        if self.cfg.family == "forge":
+            tcp_p, tcp_q = self._tcp_pose()
+            e_pos = (tcp_p - cmd_pos).norm(dim=-1) / POS_ACTION_SCALE
+            r1, p1, y1 = euler_xyz_from_quat(tcp_q)
+            r2, p2, y2 = euler_xyz_from_quat(cmd_quat)
+            e_rot = _wrap(y1 - y2).abs()
+            if self.cfg.action_dim == 6:
+                e_rot = e_rot + _wrap(r1 - r2).abs() + _wrap(p1 - p2).abs()
+            action_penalty = -0.001 * (e_pos + e_rot / ROT_ACTION_SCALE)
+            contact_penalty = -torch.clamp(self.force_smoothed_w.norm(dim=-1) - CONTACT_PENALTY_THRESHOLD, min=0.0)
+            reward = reward + action_penalty + contact_penalty
+            log["/reward/action_penalty"] = float(action_penalty.mean())
+            log["/reward/contact_penalty"] = float(contact_penalty.mean())
+        self.episode_reward += reward
+
+        # blow-ups: reset those worlds alone
+        blown = self._blown_up()
+        n_blown = int(blown.sum())
+        if n_blown:
+            self.physics_resets_total += n_blown
+            self._reset_worlds(blown, settle=False)
+            reward = torch.where(blown, torch.zeros_like(reward), reward)
+
+        time_out = self.episode_length_buf >= self.max_episode_length
+        extras: dict = {"time_outs": time_out.clone(), "log": log}
+        log["/physics_resets"] = float(n_blown)
+        log["/success"] = float(success.float().mean())
+        if time_out.any():
+            extras["episode"] = self.episode_metrics(time_out)
+            for k, val in extras["episode"].items():
+                if k != "env_ids":
+                    log[f"/episode/{k}"] = val
+            self._reset_worlds(time_out, settle=bool(time_out.all()))
+        dones = time_out | blown
+        return self.get_observations(), reward, dones, extras
+
+    def episode_metrics(self, mask: torch.Tensor) -> dict:
+        """Thesis metrics of the finished episodes of the masked worlds (means over those worlds)."""
+        count = self.force_count[mask].clamp_min(1).float()
+        fs = self.first_success_step[mask]
+        reached = fs >= 0
+        ttfs = (fs[reached].float() * self.task.episode_length_s / self.max_episode_length)
+        return {
+            "success_rate": float(self.success[mask].float().mean()),
+            "success_rate_any": float(self.success_any[mask].float().mean()),
+            "mean_contact_force": float((self.force_norm_sum[mask] / count).mean()),
+            "peak_contact_force": float(self.force_peak[mask].max()),
+            "mean_peak_contact_force": float(self.force_peak[mask].mean()),
+            "time_to_first_success_s": float(ttfs.mean()) if reached.any() else float("nan"),
+            "episode_reward": float(self.episode_reward[mask].mean()),
+            "num_episodes": int(mask.sum()),
+        }
+
+    def _blown_up(self) -> torch.Tensor:
+        v = self._state_views(self.state_0)
+        bq = v["body_q"].view(self.num_envs, -1, 7)
+        bqd = v["body_qd"].view(self.num_envs, -1, 6)
+        bad = ~torch.isfinite(bq).all(-1).all(-1) | ~torch.isfinite(bqd).all(-1).all(-1)
+        bad |= bqd[..., :3].norm(dim=-1).amax(-1) > MAX_LIN_VEL
+        bad |= bqd[..., 3:].norm(dim=-1).amax(-1) > MAX_ANG_VEL
+        held_p, _ = self.held_pose()
+        tcp_p, _ = self._tcp_pose()
+        bad |= (held_p - tcp_p).norm(dim=-1) > 0.5  # the part was thrown out of the hand
+        return bad
+
+
+# ---------------------------------------------------------------------------------------------
+# small torch helpers
+
+
+def _wrap(a: torch.Tensor) -> torch.Tensor:
+    return torch.atan2(torch.sin(a), torch.cos(a))
+
+
+def _quat_from_rotvec(rv: torch.Tensor) -> torch.Tensor:
+    angle = rv.norm(dim=-1, keepdim=True)
+    half = 0.5 * angle
+    scale = torch.where(angle > 1e-8, torch.sin(half) / angle.clamp_min(1e-8), 0.5 - angle**2 / 48.0)
+    return torch.cat((rv * scale, torch.cos(half)), -1)
+
+
+def _orientation_error(q_target: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Rotation vector of q_target * q^-1 (world frame), shortest way (Factory 5.4)."""
+    sign = torch.where((q_target * q).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+    qt = q_target * sign
+    q_inv = torch.cat((-q[:, :3], q[:, 3:]), -1)
+    qe = quat_mul(qt, q_inv)
+    v, w = qe[:, :3], qe[:, 3:].clamp(-1.0, 1.0)
+    s = v.norm(dim=-1, keepdim=True)
+    angle = 2.0 * torch.atan2(s, w)
+    return torch.where(s > 1e-9, v * angle / s.clamp_min(1e-9), 2.0 * v)
+
+
+def _point_jacobian(j_com: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Jacobian of a point at offset r (world) from the body COM: v = v_com + w x r."""
+    j_lin, j_ang = j_com[:, :3], j_com[:, 3:]
+    # w x r = -r x w = -[r]x j_ang qd
+    rx = torch.zeros(r.shape[0], 3, 3, device=r.device, dtype=r.dtype)
+    rx[:, 0, 1], rx[:, 0, 2] = -r[:, 2], r[:, 1]
+    rx[:, 1, 0], rx[:, 1, 2] = r[:, 2], -r[:, 0]
+    rx[:, 2, 0], rx[:, 2, 1] = -r[:, 1], r[:, 0]
+    return torch.cat((j_lin - rx @ j_ang, j_ang), 1)
+
+
+def _bound_tilt(quat: torch.Tensor, max_tilt: float) -> torch.Tensor:
+    """Limit the angle between the gripper axis (local +z) and straight down (world -z)."""
+    down = torch.tensor((0.0, 0.0, -1.0), device=quat.device).expand(quat.shape[0], 3)
+    z = quat_rotate(quat, torch.tensor((0.0, 0.0, 1.0), device=quat.device).expand(quat.shape[0], 3))
+    cos_tilt = (z * down).sum(-1).clamp(-1.0, 1.0)
+    tilt = torch.acos(cos_tilt)
+    over = tilt > max_tilt
+    if not over.any():
+        return quat
+    # rotate back about axis (z x down) by (tilt - max_tilt)
+    axis = torch.cross(z, down, dim=-1)
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    corr = _quat_from_rotvec(axis * (tilt - max_tilt).unsqueeze(-1))
+    return torch.where(over.unsqueeze(-1), quat_mul(corr, quat), quat)

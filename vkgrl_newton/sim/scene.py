@@ -1,0 +1,310 @@
+"""Build the Newton model of one assembly task: USD stages -> ModelBuilder -> N worlds.
+
+The robot stage (assets_usd/franka_panda.usda) and the task stage (assets_usd/<task>.usda) are
+loaded into one template builder, collision settings are applied per shape, and the template
+is replicated into `num_worlds` separate worlds (worlds never collide with each other).
+
+Gravity (documented choice, as Isaac Lab's Newton port of Factory): the model's gravity is 0.
+In Factory the robot and the held part ignore gravity (`disable_gravity=True`) and the fixed
+part is welded, so nothing in the scene feels gravity during an episode; Newton has no per-body
+gravity switch that every solver honours, so the world gravity is set to zero instead.
+
+The fixed part (socket) is made of static shapes (body -1). Static shapes cannot be moved by
+joints, so the env re-places them per world at reset by writing `model.shape_transform`
+(see `socket_shapes` / `socket_local`): the collision pipeline reads static shape transforms
+from the model every step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+import newton
+
+from ..assets_usd import FRANKA_USD, TASK_USD
+from ..tasks import DECIMATION, SIM_DT, get_task
+
+__all__ = ["SimConfig", "Scene", "build_scene", "default_device", "SOLVERS"]
+
+SOLVERS = ("mujoco", "steel")
+
+# Factory's reset posture (reference/isaaclab_factory_facts.md section 3); also the null-space target
+FACTORY_RESET_JOINTS = (1.5178e-3, -0.19651, -1.4364e-3, -1.9761, -2.7717e-4, 1.7796, 0.78556)
+# Factory's null-space posture (section 5.4)
+FACTORY_NULL_JOINTS = (-1.3003, -0.4015, 1.1791, -2.1493, 0.4001, 1.9425, 0.4754)
+ARM_DOFS = 7
+
+
+def default_device() -> str:
+    """'cuda:0' when Warp sees a CUDA device, else 'cpu'."""
+    return "cuda:0" if wp.is_cuda_available() else "cpu"
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Physics settings. Defaults: reference/peg_grip_cpu_facts.md section 7 (measured on CPU)."""
+
+    num_worlds: int = 16
+    device: str | None = None  # None: cuda:0 when present, else cpu
+    solver: str = "mujoco"  # SolverMuJoCo (MuJoCo-Warp) with Newton's collision pipeline
+    substeps: int = 4  # per 1/120 s physics step; 2 let the fingers tunnel through the peg
+    world_spacing: float = 0.0  # m between worlds along x; 0 keeps every world at the origin (Newton's advice)
+    contact_gap: float = 0.001  # m, Newton shape gap (contacts generated within this distance)
+    contact_ke: float = 4.0e4  # N/m -> MuJoCo solref timeconst 5 ms, damping ratio 1
+    contact_kd: float = 400.0
+    impratio: float = 10.0  # cuts the peg's creep along the fingers from ~1.5 mm to 0.12 mm
+    nconmax: int = 256  # contacts per world (about 130 during an insertion)
+    njmax: int = 1024  # constraint rows per world
+    robot_usd: str | None = None  # a user's own robot stage (same body/joint names); None: the bundled Franka
+
+    def __post_init__(self):
+        if not isinstance(self.num_worlds, int) or self.num_worlds < 1:
+            raise ValueError(f"num_worlds must be an integer >= 1, got {self.num_worlds!r}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if not isinstance(self.substeps, int) or self.substeps < 1:
+            raise ValueError(f"substeps must be an integer >= 1, got {self.substeps!r}")
+        for name in ("contact_gap", "contact_ke", "contact_kd", "impratio"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        if self.world_spacing < 0:
+            raise ValueError(f"world_spacing must be >= 0, got {self.world_spacing!r}")
+
+    @property
+    def sim_dt(self) -> float:
+        return SIM_DT
+
+    @property
+    def substep_dt(self) -> float:
+        return SIM_DT / self.substeps
+
+    @property
+    def decimation(self) -> int:
+        return DECIMATION
+
+
+@dataclass
+class Scene:
+    """A built model and the indices the env and the kernels need (all per world, on device)."""
+
+    task: str
+    config: SimConfig
+    model: newton.Model
+    device: str
+    num_worlds: int
+    bodies_per_world: int
+    coords_per_world: int
+    dofs_per_world: int
+    env_origins: np.ndarray  # (E, 3) world position of each robot base, m
+    hand_body: wp.array  # (E,) int32 global body index of the hand
+    held_body: wp.array  # (E,) int32 global body index of the held part
+    robot_articulation: wp.array  # (E,) int32
+    robot_articulation_mask: wp.array  # (A,) bool, True for robot articulations (Jacobian/mass only for these)
+    hand_link: int  # link row of the hand in its articulation (Jacobian row block)
+    tcp_offset_hand: tuple[float, float, float]  # TCP position in the hand frame, m
+    held_q_start: int  # first joint_q column of the held part's free joint in a world
+    held_qd_start: int
+    socket_shapes: wp.array  # (E, Ns) int32 global shape indices of the fixed part
+    socket_local: wp.array  # (Ns,) transform of each socket shape in the socket frame
+    gripper_group: wp.array  # (S,) int32: 1 for the held part and finger pads, 0 otherwise
+    finger_dofs: tuple[int, int] = (7, 8)
+    labels: dict = field(default_factory=dict)
+
+
+def _find(labels: list[str], suffix: str) -> int:
+    hits = [i for i, lbl in enumerate(labels) if lbl.endswith(suffix)]
+    if len(hits) != 1:
+        raise ValueError(f"expected exactly one entry ending in {suffix!r}, found {len(hits)}")
+    return hits[0]
+
+
+def _transform_inverse_np(p, q):
+    """Inverse of the rigid transform (p, q xyzw), numpy float64."""
+    x, y, z, w = q
+    qi = np.array([-x, -y, -z, w])
+    return -_rotate_np(qi, np.asarray(p)), qi
+
+
+def _rotate_np(q, v):
+    x, y, z, w = q
+    u = np.array([x, y, z])
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def _quat_mul_np(a, b):
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ]
+    )
+
+
+def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, dict]:
+    """One world: the robot and the task parts, with this project's collision settings."""
+    get_task(task)  # validates the name
+    if task not in TASK_USD:
+        raise ValueError(f"task {task!r} has no USD stage yet; available: {sorted(TASK_USD)}")
+    builder = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    robot_usd = config.robot_usd or str(FRANKA_USD)
+    builder.add_usd(robot_usd, enable_self_collisions=False, load_visual_shapes=True)
+    builder.add_usd(str(TASK_USD[task]))
+
+    bodies = builder.body_label
+    shapes = builder.shape_label
+    info = {
+        "hand": _find(bodies, "/hand"),
+        "left_finger": _find(bodies, "/left_finger"),
+        "right_finger": _find(bodies, "/right_finger"),
+        "held": next(i for i, lbl in enumerate(bodies) if lbl.startswith(f"/{_stage_root(task)}/")),
+        "tcp_site": _find(shapes, "/hand/tcp"),
+    }
+    finger_bodies = {info["left_finger"], info["right_finger"]}
+    robot_bodies = {i for i, lbl in enumerate(bodies) if not lbl.startswith(f"/{_stage_root(task)}/")}
+    collide = int(newton.ShapeFlags.COLLIDE_SHAPES)
+    pads, socket, group = [], [], []
+    for s, lbl in enumerate(shapes):
+        body = builder.shape_body[s]
+        is_site = bool(builder.shape_flags[s] & int(newton.ShapeFlags.SITE))
+        if is_site:
+            continue
+        is_pad = body in finger_bodies and "/pad_" in lbl
+        if body in robot_bodies and not is_pad:
+            # only the finger pads touch the parts (design.md); the rest of the arm is visual here
+            builder.shape_flags[s] &= ~collide
+            continue
+        if builder.shape_flags[s] & collide:
+            builder.shape_material_ke[s] = config.contact_ke
+            builder.shape_material_kd[s] = config.contact_kd
+            builder.shape_gap[s] = config.contact_gap
+            builder.shape_material_mu_torsional[s] = 0.0
+            builder.shape_material_mu_rolling[s] = 0.0
+        if is_pad:
+            pads.append(s)
+            group.append(s)
+        elif body == info["held"]:
+            group.append(s)
+        elif body == -1 and "/socket/" in lbl:
+            socket.append(s)
+    if not pads or not socket:
+        raise ValueError(f"stage for {task!r}: found {len(pads)} finger pads and {len(socket)} socket shapes")
+    info.update(pads=pads, socket=socket, group=group)
+
+    tcp_xform = builder.shape_transform[info["tcp_site"]]
+    info["tcp_offset_hand"] = tuple(float(v) for v in tcp_xform[:3])
+
+    # initial posture: Factory's reset joints, fingers open
+    arm_q0 = builder.joint_q_start[_find(builder.joint_label, "/joint1")]
+    builder.joint_q[arm_q0 : arm_q0 + ARM_DOFS] = list(FACTORY_RESET_JOINTS)
+    return builder, info
+
+
+def _stage_root(task: str) -> str:
+    """The default prim name of a task stage (PegInsert -> peg_insert)."""
+    return "".join("_" + c.lower() if c.isupper() else c for c in task).lstrip("_")
+
+
+def build_scene(task: str, config: SimConfig | None = None) -> Scene:
+    """Build the N-world model of `task` on `config.device` (see module docstring)."""
+    config = config or SimConfig()
+    device = config.device or default_device()
+    template, info = build_template(task, config)
+
+    scene_builder = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    scene_builder.replicate(template, config.num_worlds, spacing=(config.world_spacing, 0.0, 0.0))
+    model = scene_builder.finalize(device=device)
+
+    nw = config.num_worlds
+    bpw = template.body_count
+    cpw = template.joint_coord_count
+    dpw = template.joint_dof_count
+    spw = len(template.shape_label)
+    if model.body_count != bpw * nw or model.joint_coord_count != cpw * nw or model.shape_count != spw * nw:
+        raise RuntimeError("replicated model layout is not world-major; per-world views would be wrong")
+
+    # articulations: in each world the robot's comes first (it was added first)
+    art_start = model.articulation_start.numpy()
+    joint_child = model.joint_child.numpy()
+    robot_art = []
+    art_of_body = {}
+    for a in range(model.articulation_count):
+        for j in range(art_start[a], art_start[a + 1]):
+            art_of_body[int(joint_child[j])] = a
+    robot_art = [art_of_body[w * bpw + info["hand"]] for w in range(nw)]
+    hand_art = robot_art[0]
+    hand_link = [j - art_start[hand_art] for j in range(art_start[hand_art], art_start[hand_art + 1])
+                 if joint_child[j] == info["hand"]][0]
+    mask = np.zeros(model.articulation_count, dtype=bool)
+    mask[robot_art] = True
+
+    held_joint = [j for j in range(template.joint_count) if template.joint_child[j] == info["held"]][0]
+
+    # socket shapes relative to the socket frame at its authored (nominal) pose
+    body_q0 = model.body_q.numpy()
+    origins = np.array([body_q0[w * bpw + 0, :3] for w in range(nw)], dtype=np.float64)  # robot base link
+    socket_ids = np.array([[w * spw + s for s in info["socket"]] for w in range(nw)], dtype=np.int32)
+    shape_tf = template.shape_transform
+    from ..assets_usd.author import SOCKET_NOMINAL_POS  # authored pose of the socket frame
+
+    inv_p, inv_q = _transform_inverse_np(np.array(SOCKET_NOMINAL_POS), np.array([0.0, 0.0, 0.0, 1.0]))
+    socket_local = []
+    for s in info["socket"]:
+        p = np.array(shape_tf[s][:3], dtype=np.float64)
+        q = np.array(shape_tf[s][3:], dtype=np.float64)
+        socket_local.append(tuple(inv_p + _rotate_np(inv_q, p)) + tuple(_quat_mul_np(inv_q, q)))
+
+    group = np.zeros(model.shape_count, dtype=np.int32)
+    for w in range(nw):
+        group[[w * spw + s for s in info["group"]]] = 1
+
+    return Scene(
+        task=task,
+        config=config,
+        model=model,
+        device=device,
+        num_worlds=nw,
+        bodies_per_world=bpw,
+        coords_per_world=cpw,
+        dofs_per_world=dpw,
+        env_origins=origins,
+        hand_body=wp.array([w * bpw + info["hand"] for w in range(nw)], dtype=wp.int32, device=device),
+        held_body=wp.array([w * bpw + info["held"] for w in range(nw)], dtype=wp.int32, device=device),
+        robot_articulation=wp.array(robot_art, dtype=wp.int32, device=device),
+        robot_articulation_mask=wp.array(mask, dtype=wp.bool, device=device),
+        hand_link=int(hand_link),
+        tcp_offset_hand=info["tcp_offset_hand"],
+        held_q_start=int(template.joint_q_start[held_joint]),
+        held_qd_start=int(template.joint_qd_start[held_joint]),
+        socket_shapes=wp.array(socket_ids, dtype=wp.int32, device=device),
+        socket_local=wp.array(socket_local, dtype=wp.transform, device=device),
+        gripper_group=wp.array(group, dtype=wp.int32, device=device),
+        labels={"bodies": list(template.body_label), "shapes": list(template.shape_label)},
+    )
+
+
+def make_solver(scene: Scene):
+    """The configured solver and a collision pipeline producing its contacts."""
+    model = scene.model
+    nw = scene.num_worlds
+    pipeline = newton.CollisionPipeline(model, rigid_contact_max=scene.config.nconmax * nw, broad_phase="explicit")
+    if scene.config.solver == "mujoco":
+        solver = newton.solvers.SolverMuJoCo(
+            model,
+            use_mujoco_contacts=False,
+            solver="newton",
+            integrator="implicitfast",
+            cone="elliptic",
+            impratio=scene.config.impratio,
+            njmax=scene.config.njmax,
+            nconmax=scene.config.nconmax,
+        )
+    else:
+        solver = newton.solvers.SolverSteel(model)
+    return solver, pipeline
