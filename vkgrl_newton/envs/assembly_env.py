@@ -66,7 +66,7 @@ FACTORY_EMA = 0.2
 # disables the term, and so does this env by default: measured here, the null-space torque moved a
 # zero-action TCP by 5.8 mm in 5 control steps (the target follows the current pose every physics
 # step, so any leak of null-space torque into the task space accumulates), versus 0.0 mm without.
-NULL_KP, NULL_KD = 0.0, 0.0
+NULL_KP, NULL_KD = 0.0, 2.0 * math.sqrt(10.0)
 FACTORY_NULL_KP, FACTORY_NULL_KD = 10.0, 2.0 * math.sqrt(10.0)
 TORQUE_LIMIT = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 FORCE_OBS_NOISE = 1.0  # N, Forge

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..kmp.pose import euler_xyz_from_quat, quat_from_euler_xyz
+from ..kmp.pose import euler_xyz_from_quat, quat_from_euler_xyz, quat_rotate
 
 __all__ = ["ScriptedInserter", "ScriptedParams"]
 
@@ -30,12 +30,16 @@ __all__ = ["ScriptedInserter", "ScriptedParams"]
 @dataclass(frozen=True)
 class ScriptedParams:
     approach_height: tuple[float, float] = (0.006, 0.012)  # m above the fixed tip, part bottom
-    approach_speed: tuple[float, float] = (0.025, 0.04)  # m/s
-    descend_speed: tuple[float, float] = (0.012, 0.02)  # m/s
+    approach_speed: tuple[float, float] = (0.02, 0.035)  # m/s
+    descend_speed: tuple[float, float] = (0.008, 0.012)  # m/s (mean speed of a minimum-jerk segment)
     push_depth: tuple[float, float] = (0.004, 0.006)  # m below the hole bottom
     align_tolerance: float = 0.0008  # m, xy error of the part bottom before descending
     settle_speed: float = 0.003  # m/s, TCP speed below which the arm counts as stopped
-    yaw_rate: float = math.radians(60.0)  # rad/s toward psi_ref
+    lateral_gain: float = 0.1  # per step, integral gain on the part's lateral error at rest
+    max_bias: float = 0.003  # m, bound on the integral correction
+    min_segment_s: float = 1.0  # s, shortest approach (the yaw turn shares its timing)
+    rest_steps: int = 3  # consecutive aligned, still control steps before descending
+    entry_height: float = 0.001  # m above the fixed tip: the second alignment check
     start_delay_steps: tuple[int, int] = (0, 4)  # control steps of waiting at the start
 
 
@@ -63,48 +67,93 @@ class ScriptedInserter:
         lo, hi = p.start_delay_steps
         self.delay = torch.randint(lo, hi + 1, (n,), device=dev, generator=self._gen)
         self.phase = torch.zeros(n, dtype=torch.long, device=dev)
-        self.offset = torch.zeros(n, 3, device=dev)  # TCP - part bottom, world
         tcp_p, tcp_q = env._tcp_pose()
-        self.cmd_pos = tcp_p.clone()
-        _, _, self.yaw = euler_xyz_from_quat(tcp_q)
-        self.yaw = self.yaw.clone()
+        held_p, _ = env.held_pose()
+        # rigid grasp offset (TCP - part bottom) in the TCP frame, measured once after the grasp
+        # settled; re-measuring it every step feeds the arm's own sway back into the command
+        self.offset_tcp = quat_rotate(_conj(tcp_q), tcp_p - held_p)
+        self.bias = torch.zeros(n, 3, device=dev)  # slow integral correction at rest above the hole
+        self.seg_start = held_p.clone()  # minimum-jerk segment of the part bottom's reference
+        self.seg_goal = held_p.clone()
+        self.seg_t0 = torch.zeros(n, device=dev)
+        self.seg_len = torch.ones(n, device=dev)
+        self.started = torch.zeros(n, dtype=torch.bool, device=dev)
+        _, _, yaw = euler_xyz_from_quat(tcp_q)
+        self.yaw0, self.yaw = yaw.clone(), yaw.clone()
+        self.rest_steps = torch.zeros(n, dtype=torch.long, device=dev)
+
+    def _start_segment(self, mask, env, goal, speed, t):
+        ref = self._reference(t)
+        self.seg_start[mask] = ref[mask]
+        self.seg_goal[mask] = goal[mask]
+        self.seg_t0[mask] = t[mask]
+        self.seg_len[mask] = ((goal - ref).norm(dim=-1) / speed).clamp_min(self.params.min_segment_s)[mask]
+
+    def _reference(self, t):
+        tau = ((t - self.seg_t0) / self.seg_len).clamp(0.0, 1.0).unsqueeze(-1)
+        s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau**2)
+        return self.seg_start + (self.seg_goal - self.seg_start) * s
 
     def act(self, env) -> tuple[torch.Tensor, torch.Tensor]:
         """The TCP pose command (world frame) for this control step."""
         p = self.params
         dt = env.scene.config.sim_dt * env.scene.config.decimation
-        tcp_p, _ = env._tcp_pose()
+        t = env.episode_length_buf.float() * dt
+        tcp_p, tcp_q = env._tcp_pose()
         held_p, _ = env.held_pose()
         fixed = env.fixed_pos_w  # true hole bottom on the axis (privileged)
         tip_z = fixed[:, 2] + env.geometry.fixed_height
         waiting = env.episode_length_buf < self.delay
 
-        align = self.phase == 0
-        tip_z_now = fixed[:, 2] + env.geometry.fixed_height
-        free = held_p[:, 2] > tip_z_now + 0.001  # not touching the fixed part yet: keep servoing
-        self.offset[free] = (tcp_p - held_p)[free]
-        goal = fixed.clone()
-        goal[:, 2] = torch.where(align, tip_z + self.height, fixed[:, 2] - self.push)
-        bottom_cmd = self.cmd_pos - self.offset
-        err = goal - bottom_cmd
-        speed = torch.where(align, self.v_approach, self.v_descend).unsqueeze(-1)
-        step = err.norm(dim=-1, keepdim=True)
-        move = err * torch.clamp(speed * dt / step.clamp_min(1e-9), max=1.0)
-        move[waiting] = 0.0
-        self.cmd_pos = self.cmd_pos + move
+        above = fixed.clone()
+        above[:, 2] = tip_z + self.height
+        start = ~waiting & ~self.started
+        if start.any():
+            self._start_segment(start, env, above, self.v_approach, t)
+            self.started |= start
 
-        # aligned over the hole (measured on the real part) -> descend
+        # descend once the reference has arrived above the hole, the real part is on the axis and
+        # the arm has stopped (Factory's soft gains are underdamped on the arm's real inertia:
+        # passing through the tolerance on the way is not being aligned)
+        align = self.phase < 2
+        arrived = self.started & (t >= self.seg_t0 + self.seg_len)
         xy_err = (held_p[:, :2] - fixed[:, :2]).norm(dim=-1)
-        z_err = (held_p[:, 2] - (tip_z + self.height)).abs()
-        # ... once the command has arrived and the arm has stopped (Factory's soft gains lag and
-        # overshoot: passing through the tolerance on the way is not being aligned)
-        arrived = (goal - (self.cmd_pos - self.offset)).norm(dim=-1) < 1e-5
         still = env.tcp_twist_w[:, :3].norm(dim=-1) < p.settle_speed
-        ready = align & ~waiting & arrived & still & (xy_err < p.align_tolerance) & (z_err < 0.003)
-        self.phase[ready] = 1
+        at_rest = align & arrived & still
+        self.bias[:, :2] += torch.where(at_rest.unsqueeze(-1), p.lateral_gain * (fixed - held_p)[:, :2],
+                                        torch.zeros_like(held_p[:, :2]))
+        self.bias.clamp_(-p.max_bias, p.max_bias)
+        self.rest_steps = torch.where(at_rest & (xy_err < p.align_tolerance), self.rest_steps + 1, 0)
+        ready = self.rest_steps >= p.rest_steps
+        # phase 0 -> 1: descend to the entry point, 1 mm above the fixed tip;
+        # phase 1 -> 2: aligned and still again there (the descent couples into a lateral drift
+        # through the arm's inertia), then insert
+        entry = fixed.clone()
+        entry[:, 2] = tip_z + p.entry_height
+        bottom = fixed.clone()
+        bottom[:, 2] = fixed[:, 2] - self.push
+        go_entry = ready & (self.phase == 0)
+        go_insert = ready & (self.phase == 1)
+        if go_entry.any():
+            self._start_segment(go_entry, env, entry, self.v_descend, t)
+            self.phase[go_entry] = 1
+            self.rest_steps[go_entry] = 0
+        if go_insert.any():
+            self._start_segment(go_insert, env, bottom, self.v_descend, t)
+            self.phase[go_insert] = 2
 
-        # yaw toward psi_ref at a bounded rate
-        d_yaw = torch.atan2(torch.sin(env.task.psi_ref - self.yaw), torch.cos(env.task.psi_ref - self.yaw))
-        self.yaw = self.yaw + torch.clamp(d_yaw, -p.yaw_rate * dt, p.yaw_rate * dt) * (~waiting).float()
+        offset_w = quat_rotate(tcp_q, self.offset_tcp)
+        cmd_pos = self._reference(t) + offset_w + self.bias
+
+        # yaw turns to psi_ref along the approach segment (same minimum-jerk timing)
+        tau = ((t - self.seg_t0) / self.seg_len).clamp(0.0, 1.0)
+        s_yaw = torch.where(self.phase == 0, tau**3 * (10.0 - 15.0 * tau + 6.0 * tau**2), torch.ones_like(tau))
+        s_yaw = torch.where(self.started, s_yaw, torch.zeros_like(tau))
+        d_yaw = torch.atan2(torch.sin(env.task.psi_ref - self.yaw0), torch.cos(env.task.psi_ref - self.yaw0))
+        self.yaw = self.yaw0 + d_yaw * s_yaw
         quat = quat_from_euler_xyz(torch.full_like(self.yaw, math.pi), torch.zeros_like(self.yaw), self.yaw)
-        return self.cmd_pos.clone(), quat
+        return cmd_pos, quat
+
+
+def _conj(q: torch.Tensor) -> torch.Tensor:
+    return torch.cat((-q[..., :3], q[..., 3:]), -1)
