@@ -5,6 +5,10 @@ Installed as `vkgrl_newton.assets_usd`; `ASSET_DIR` is where the .usda files are
 
 from pathlib import Path
 
+# Newton's USD schemas must be registered before pxr's schema registry is first used, or a stage
+# read earlier in the process loses NewtonMimicAPI (the finger mimic) silently.
+import newton_usd_schemas  # noqa: F401
+
 ASSET_DIR = Path(__file__).resolve().parent
 FRANKA_USD = ASSET_DIR / "franka_panda.usda"
 TASK_USD = {"PegInsert": ASSET_DIR / "peg_insert.usda"}

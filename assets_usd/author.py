@@ -50,6 +50,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import newton_usd_schemas  # noqa: F401  registers Newton's USD schemas (NewtonMimicAPI, NewtonSiteAPI) before pxr is used
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade, Vt
 

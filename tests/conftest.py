@@ -16,3 +16,16 @@ def wp_cpu():
     wp.init()
     wp.set_device("cpu")
     return wp
+
+
+@pytest.fixture(scope="session")
+def peg_env(wp_cpu):
+    """One 4-world PegInsert env (Factory, 6-D actions, seed 0) on the CPU, shared by the env tests.
+
+    Constructing it builds the scene and the MuJoCo-Warp solver and resets every world (IK + 30
+    physics steps). Tests that need a freshly reset env call `env.reset()` themselves when
+    `episode_length_buf` shows the env has stepped; tests that corrupt the state run last.
+    """
+    from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
+
+    return AssemblyEnv(EnvConfig(task="PegInsert", family="factory", action_dim=6, num_envs=4, device="cpu", seed=0))

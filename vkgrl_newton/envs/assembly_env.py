@@ -633,6 +633,9 @@ class AssemblyEnv(VecEnv):
         log["/success"] = float(success.float().mean())
         if time_out.any():
             extras["episode"] = self.episode_metrics(time_out)
+            # per-world outcome of the finished episode, kept past the auto-reset (demo recording)
+            self.last_episode_success_any = self.success_any.clone()
+            self.last_episode_success = self.success.clone()
             for k, val in extras["episode"].items():
                 if k != "env_ids":
                     log[f"/episode/{k}"] = val
