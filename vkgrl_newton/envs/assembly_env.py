@@ -451,6 +451,14 @@ class AssemblyEnv(VecEnv):
             ik_fail += int(todo.sum())
         self._ik_failures = ik_fail
 
+        # MuJoCo-Warp warm-starts each solve from the last accelerations: a world that blew up
+        # keeps NaN there and would blow up again on every step, so clear it for reset worlds
+        mjw_data = getattr(self.solver, "mjw_data", None)
+        for name in ("qacc_warmstart", "qacc"):
+            arr = getattr(mjw_data, name, None) if mjw_data is not None else None
+            if arr is not None and arr.shape[0] == E:
+                wp.to_torch(arr)[mask] = 0.0
+
         # fingers and held part
         hq = self.scene.held_q_start
         fingers = slice(ARM_DOFS, ARM_DOFS + 2)
