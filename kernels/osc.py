@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import math
 
+from typing import Any
+
 import warp as wp
 
 from .kmp_horizon import mat66f, vec6f
@@ -88,16 +90,18 @@ def wrap_to_pi(x: float) -> float:
 
 
 @wp.func
-def cholesky77(m: mat77f) -> mat77f:
-    """Lower Cholesky factor L (L L^T = m) of a symmetric positive definite 7x7 matrix; the upper part is 0."""
-    l = mat77f()
-    for j in range(7):
+def cholesky(m: Any):
+    """Lower Cholesky factor L (L L^T = m) of a symmetric positive definite n x n matrix (any
+    square Warp matrix type); the upper part is 0. Pivots are floored at _PIVOT_FLOOR |m_jj|."""
+    n = len(m)
+    l = m * 0.0
+    for j in range(n):
         d = m[j, j]
         for k in range(j):
             d -= l[j, k] * l[j, k]
         d = wp.sqrt(wp.max(d, _PIVOT_FLOOR * wp.abs(m[j, j])))
         l[j, j] = d
-        for i in range(j + 1, 7):
+        for i in range(j + 1, n):
             s = m[i, j]
             for k in range(j):
                 s -= l[i, k] * l[j, k]
@@ -106,56 +110,20 @@ def cholesky77(m: mat77f) -> mat77f:
 
 
 @wp.func
-def cholesky_solve77(l: mat77f, b: vec7f) -> vec7f:
-    """x with L L^T x = b, L the lower factor from cholesky77."""
-    y = vec7f()
-    for i in range(7):
+def cholesky_solve(l: Any, b: Any):
+    """x with L L^T x = b, L the lower factor from `cholesky` (matching matrix and vector sizes)."""
+    n = len(b)
+    y = b * 0.0
+    for i in range(n):
         s = b[i]
         for k in range(i):
             s -= l[i, k] * y[k]
         y[i] = s / l[i, i]
-    x = vec7f()
-    for ii in range(7):
-        i = 6 - ii
+    x = b * 0.0
+    for ii in range(n):
+        i = n - 1 - ii
         s = y[i]
-        for k in range(i + 1, 7):
-            s -= l[k, i] * x[k]
-        x[i] = s / l[i, i]
-    return x
-
-
-@wp.func
-def cholesky66(m: mat66f) -> mat66f:
-    """Lower Cholesky factor L (L L^T = m) of a symmetric positive definite 6x6 matrix; the upper part is 0."""
-    l = mat66f()
-    for j in range(6):
-        d = m[j, j]
-        for k in range(j):
-            d -= l[j, k] * l[j, k]
-        d = wp.sqrt(wp.max(d, _PIVOT_FLOOR * wp.abs(m[j, j])))
-        l[j, j] = d
-        for i in range(j + 1, 6):
-            s = m[i, j]
-            for k in range(j):
-                s -= l[i, k] * l[j, k]
-            l[i, j] = s / d
-    return l
-
-
-@wp.func
-def cholesky_solve66(l: mat66f, b: vec6f) -> vec6f:
-    """x with L L^T x = b, L the lower factor from cholesky66."""
-    y = vec6f()
-    for i in range(6):
-        s = b[i]
-        for k in range(i):
-            s -= l[i, k] * y[k]
-        y[i] = s / l[i, i]
-    x = vec6f()
-    for ii in range(6):
-        i = 5 - ii
-        s = y[i]
-        for k in range(i + 1, 6):
+        for k in range(i + 1, n):
             s -= l[k, i] * x[k]
         x[i] = s / l[i, i]
     return x
@@ -245,21 +213,21 @@ def osc_torques_kernel(
                 m[i, j] = mass_matrix[a, arm_dof_start + i, arm_dof_start + j]
             dq = wrap_to_pi(q_null[i] - joint_q[e, arm_q_start + i])
             u0[i] = kp_null * dq - kd_null * joint_qd[e, arm_qd_start + i]
-        l_m = cholesky77(m)
+        l_m = cholesky(m)
         # task matrix J M^-1 J^T, one column of M^-1 J^T per task row
         minv_jt = mat67f()  # row i = (M^-1 J^T)[:, i]
         for i in range(6):
             jrow = vec7f()
             for j in range(7):
                 jrow[j] = jac[i, j]
-            col = cholesky_solve77(l_m, jrow)
+            col = cholesky_solve(l_m, jrow)
             for j in range(7):
                 minv_jt[i, j] = col[j]
         task = jac * wp.transpose(minv_jt)
         task = 0.5 * (task + wp.transpose(task))
         for i in range(6):
             task[i, i] = task[i, i] * (1.0 + _TASK_REG)
-        y = cholesky_solve66(cholesky66(task), jac * u0)
+        y = cholesky_solve(cholesky(task), jac * u0)
         tau += m * u0 - wp.transpose(jac) * y
 
     for j in range(7):

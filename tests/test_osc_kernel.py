@@ -6,6 +6,7 @@ the null-space projector are spelled out with numpy and literal matrix inverses.
 """
 
 import numpy as np
+from quat_ref import q_mul, q_to_matrix
 import pytest
 import torch
 
@@ -17,22 +18,6 @@ SENTINEL = 12345.0
 
 
 # ------------------------------------------------------------------ float64 reference
-
-
-def q_mul(a, b):
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([aw * bx + bw * ax + ay * bz - az * by,
-                     aw * by + bw * ay + az * bx - ax * bz,
-                     aw * bz + bw * az + ax * by - ay * bx,
-                     aw * bw - ax * bx - ay * by - az * bz])
-
-
-def q_to_matrix(q):
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def q_axis_angle(q):

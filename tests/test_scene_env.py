@@ -15,6 +15,8 @@ import math
 import numpy as np
 import pytest
 import torch
+from quat_ref import q_mul as qmul
+from quat_ref import q_to_matrix as qmat
 
 TCP_Z = 0.112071  # Factory panda_fingertip_centered along the hand z
 FIXED_NOMINAL = np.array([0.6, 0.0, 0.05])  # Factory fixed-asset default position
@@ -27,22 +29,6 @@ E = 4
 
 
 # ------------------------------------------------------------------ float64 helpers (quaternions xyzw)
-
-
-def qmat(q):
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def qmul(a, b):
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([aw * bx + bw * ax + ay * bz - az * by,
-                     aw * by + bw * ay + az * bx - ax * bz,
-                     aw * bz + bw * az + ax * by - ay * bx,
-                     aw * bw - ax * bx - ay * by - az * bz])
 
 
 def body_q(env):

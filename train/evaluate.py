@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
 from vkgrl_newton.envs.scripted import ScriptedInserter  # noqa: E402
 from vkgrl_newton.sim.scene import SOLVERS, SimConfig  # noqa: E402
@@ -108,10 +109,7 @@ def main(argv=None) -> int:
                   num_envs=args.num_envs, device=env.device, solver=args.solver, seed=args.seed)
     print(json.dumps({k: v for k, v in result.items() if k != "per_episode"}, indent=2))
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.json.with_suffix(args.json.suffix + ".tmp")
-        tmp.write_text(json.dumps(result, indent=2))
-        tmp.replace(args.json)
+        atomic_write_text(args.json, json.dumps(result, indent=2))  # FileExistsError rather than overwrite
     return 0
 
 

@@ -10,14 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_savez", "load_npz", "NPZ_READ_ERRORS"]
+__all__ = ["atomic_write", "atomic_savez", "atomic_write_text", "load_npz", "NPZ_READ_ERRORS"]
 
 # What np.load / reading a member of a damaged npz raises besides ValueError.
 NPZ_READ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
 
 
-def atomic_savez(path, overwrite: bool, **arrays) -> Path:
-    """Write an npz file atomically: to a temporary file beside it, then rename.
+def atomic_write(path, overwrite: bool, write, suffix: str = ".tmp") -> Path:
+    """Write a file atomically: `write(f)` fills a temporary binary file beside it, then rename.
 
     overwrite=False never replaces an existing file, also against a file created meanwhile
     (the final step is a hard link, which fails if the name exists): FileExistsError.
@@ -26,10 +26,10 @@ def atomic_savez(path, overwrite: bool, **arrays) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if not overwrite and path.exists():
         raise FileExistsError(f"{path} exists and is not overwritten; choose another path")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=suffix)
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         if overwrite:
@@ -43,6 +43,16 @@ def atomic_savez(path, overwrite: bool, **arrays) -> Path:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def atomic_savez(path, overwrite: bool, **arrays) -> Path:
+    """An npz file written with `atomic_write` (same overwrite rule)."""
+    return atomic_write(path, overwrite, lambda f: np.savez(f, **arrays), suffix=".tmp.npz")
+
+
+def atomic_write_text(path, text: str, overwrite: bool = False) -> Path:
+    """A UTF-8 text file written with `atomic_write` (never overwrites by default)."""
+    return atomic_write(path, overwrite, lambda f: f.write(text.encode("utf-8")))
 
 
 def load_npz(path, what: str, required: tuple[str, ...]) -> dict:

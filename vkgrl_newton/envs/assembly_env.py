@@ -45,7 +45,7 @@ import newton
 from ..kernels.contact_forces import contact_force_reduce, contact_force_reset, contact_force_update
 from ..kernels.kmp_horizon import vec6f
 from ..kernels.osc import osc_torques
-from ..kmp.pose import euler_xyz_from_quat, quat_from_euler_xyz, quat_mul, quat_rotate
+from ..kmp.pose import euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from_euler_xyz, quat_log, quat_mul, quat_rotate
 from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene, make_solver
 from ..tasks import get_task
 
@@ -67,7 +67,6 @@ FACTORY_EMA = 0.2
 # zero-action TCP by 5.8 mm in 5 control steps (the target follows the current pose every physics
 # step, so any leak of null-space torque into the task space accumulates), versus 0.0 mm without.
 NULL_KP, NULL_KD = 0.0, 2.0 * math.sqrt(10.0)
-FACTORY_NULL_KP, FACTORY_NULL_KD = 10.0, 2.0 * math.sqrt(10.0)
 TORQUE_LIMIT = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 FORCE_OBS_NOISE = 1.0  # N, Forge
 CONTACT_PENALTY_THRESHOLD = 7.5  # N, eq. 5.19
@@ -216,6 +215,7 @@ class AssemblyEnv(VecEnv):
         self.episode_length_buf = torch.zeros(E, dtype=torch.long, device=tdev)
         self.step_index = torch.zeros(E, dtype=torch.int32, device=tdev)  # int32 copy for Warp kernels
         self.success = torch.zeros(E, dtype=torch.bool, device=tdev)
+        self.success_any = torch.zeros(E, dtype=torch.bool, device=tdev)
         self.first_success_step = torch.full((E,), -1, dtype=torch.long, device=tdev)
         self.episode_reward = z(E)
         self.vision_latent = z(E, cfg.vision_latent_dim)
@@ -460,7 +460,6 @@ class AssemblyEnv(VecEnv):
                 wp.to_torch(arr)[mask] = 0.0
 
         # fingers and held part
-        hq = self.scene.held_q_start
         fingers = slice(ARM_DOFS, ARM_DOFS + 2)
         v["joint_q"][mask, fingers] = geo.finger_open if settle else geo.finger_grip_target + 0.010 - 0.0008
         v["joint_qd"][mask] = 0.0
@@ -486,7 +485,6 @@ class AssemblyEnv(VecEnv):
             tcp_p, tcp_q = self._tcp_pose()
             self.cmd_pos_w[mask] = tcp_p[mask]
             self.cmd_quat_w[mask] = tcp_q[mask]
-        del hq
         contact_force_reset(
             reset_mask=wp.from_torch(mask), force_smoothed_w=self._wp["force_smoothed_w"],
             force_norm_sum=self._wp["force_norm_sum"], force_sample_count=self._wp["force_count"],
@@ -497,7 +495,6 @@ class AssemblyEnv(VecEnv):
         self.success[mask] = False
         self.first_success_step[mask] = -1
         self.episode_reward[mask] = 0.0
-        self.success_any = getattr(self, "success_any", torch.zeros(E, dtype=torch.bool, device=self.tdev))
         self.success_any[mask] = False
 
     def control_finger_targets(self, mask: torch.Tensor, target: float) -> None:
@@ -517,7 +514,7 @@ class AssemblyEnv(VecEnv):
         held_p = tcp_p + quat_rotate(held_q, offset)
         v = self._state_views(self.state_0)
         hq, hqd = self.scene.held_q_start, self.scene.held_qd_start
-        v["joint_q"][mask, hq:hq + 3] = held_p - self.origins[mask] * 0.0
+        v["joint_q"][mask, hq:hq + 3] = held_p  # a free joint's coordinates are its world pose
         v["joint_q"][mask, hq + 3:hq + 7] = held_q
         v["joint_qd"][mask, hqd:hqd + 6] = 0.0
 
@@ -559,7 +556,7 @@ class AssemblyEnv(VecEnv):
             rot[:, 2] = a[:, 3] * self.rot_scale[:, 2]
         else:
             rot = a[:, 3:6] * self.rot_scale
-        quat = quat_mul(_quat_from_rotvec(rot), tcp_q)
+        quat = quat_mul(quat_exp(rot), tcp_q)
         return pos, quat
 
     def _bound_command(self, pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -578,7 +575,7 @@ class AssemblyEnv(VecEnv):
         ema = self.ema.unsqueeze(-1)
         self.actions_applied = ema * actions + (1.0 - ema) * self.actions_applied
         first_cmd = None
-        for _ in range(self.cfg.sim.decimation if hasattr(self.cfg.sim, "decimation") else 8):
+        for _ in range(self.scene.config.decimation):
             pos, quat = self._bound_command(*self._delta_targets())
             self.cmd_pos_w.copy_(pos)
             self.cmd_quat_w.copy_(quat)
@@ -611,7 +608,7 @@ class AssemblyEnv(VecEnv):
         self.success_any |= success
 
         reward = SUCCESS_REWARD * success.float()
-        log: dict[str, float] = {}
+        log: dict[str, float | torch.Tensor] = {}
         if self.cfg.family == "forge":
             tcp_p, tcp_q = self._tcp_pose()
             e_pos = (tcp_p - cmd_pos).norm(dim=-1) / POS_ACTION_SCALE
@@ -623,8 +620,8 @@ class AssemblyEnv(VecEnv):
             action_penalty = -0.001 * (e_pos + e_rot / ROT_ACTION_SCALE)
             contact_penalty = -torch.clamp(self.force_smoothed_w.norm(dim=-1) - CONTACT_PENALTY_THRESHOLD, min=0.0)
             reward = reward + action_penalty + contact_penalty
-            log["/reward/action_penalty"] = float(action_penalty.mean())
-            log["/reward/contact_penalty"] = float(contact_penalty.mean())
+            log["/reward/action_penalty"] = action_penalty.mean()  # tensors: no host sync per step
+            log["/reward/contact_penalty"] = contact_penalty.mean()
         self.episode_reward += reward
 
         # blow-ups: reset those worlds alone
@@ -638,7 +635,7 @@ class AssemblyEnv(VecEnv):
         time_out = self.episode_length_buf >= self.max_episode_length
         extras: dict = {"time_outs": time_out.clone(), "log": log}
         log["/physics_resets"] = float(n_blown)
-        log["/success"] = float(success.float().mean())
+        log["/success"] = success.float().mean()
         if time_out.any():
             extras["episode"] = self.episode_metrics(time_out)
             # per-world outcome of the finished episode, kept past the auto-reset (demo recording)
@@ -689,23 +686,9 @@ def _wrap(a: torch.Tensor) -> torch.Tensor:
     return torch.atan2(torch.sin(a), torch.cos(a))
 
 
-def _quat_from_rotvec(rv: torch.Tensor) -> torch.Tensor:
-    angle = rv.norm(dim=-1, keepdim=True)
-    half = 0.5 * angle
-    scale = torch.where(angle > 1e-8, torch.sin(half) / angle.clamp_min(1e-8), 0.5 - angle**2 / 48.0)
-    return torch.cat((rv * scale, torch.cos(half)), -1)
-
-
 def _orientation_error(q_target: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """Rotation vector of q_target * q^-1 (world frame), shortest way (Factory 5.4)."""
-    sign = torch.where((q_target * q).sum(-1, keepdim=True) < 0, -1.0, 1.0)
-    qt = q_target * sign
-    q_inv = torch.cat((-q[:, :3], q[:, 3:]), -1)
-    qe = quat_mul(qt, q_inv)
-    v, w = qe[:, :3], qe[:, 3:].clamp(-1.0, 1.0)
-    s = v.norm(dim=-1, keepdim=True)
-    angle = 2.0 * torch.atan2(s, w)
-    return torch.where(s > 1e-9, v * angle / s.clamp_min(1e-9), 2.0 * v)
+    """Rotation vector of q_target * q^-1 (world frame), the shortest way (Factory 5.4)."""
+    return quat_log(quat_mul(q_target, quat_conjugate(q)))
 
 
 def _point_jacobian(j_com: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
@@ -731,5 +714,5 @@ def _bound_tilt(quat: torch.Tensor, max_tilt: float) -> torch.Tensor:
     # rotate back about axis (z x down) by (tilt - max_tilt)
     axis = torch.cross(z, down, dim=-1)
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-    corr = _quat_from_rotvec(axis * (tilt - max_tilt).unsqueeze(-1))
+    corr = quat_exp(axis * (tilt - max_tilt).unsqueeze(-1))
     return torch.where(over.unsqueeze(-1), quat_mul(corr, quat), quat)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..kmp.pose import euler_xyz_from_quat, quat_from_euler_xyz, quat_rotate
+from ..kmp.pose import euler_xyz_from_quat, quat_conjugate, quat_from_euler_xyz, quat_rotate
 
 __all__ = ["ScriptedInserter", "ScriptedParams"]
 
@@ -71,7 +71,7 @@ class ScriptedInserter:
         held_p, _ = env.held_pose()
         # rigid grasp offset (TCP - part bottom) in the TCP frame, measured once after the grasp
         # settled; re-measuring it every step feeds the arm's own sway back into the command
-        self.offset_tcp = quat_rotate(_conj(tcp_q), tcp_p - held_p)
+        self.offset_tcp = quat_rotate(quat_conjugate(tcp_q), tcp_p - held_p)
         self.bias = torch.zeros(n, 3, device=dev)  # slow integral correction at rest above the hole
         self.seg_start = held_p.clone()  # minimum-jerk segment of the part bottom's reference
         self.seg_goal = held_p.clone()
@@ -154,6 +154,3 @@ class ScriptedInserter:
         quat = quat_from_euler_xyz(torch.full_like(self.yaw, math.pi), torch.zeros_like(self.yaw), self.yaw)
         return cmd_pos, quat
 
-
-def _conj(q: torch.Tensor) -> torch.Tensor:
-    return torch.cat((-q[..., :3], q[..., 3:]), -1)

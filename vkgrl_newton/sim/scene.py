@@ -25,6 +25,7 @@ import warp as wp
 import newton
 
 from ..assets_usd import FRANKA_USD, TASK_USD
+from ..assets_usd.author import SOCKET_NOMINAL_POS  # authored pose of the socket frame
 from ..tasks import DECIMATION, SIM_DT, get_task
 
 __all__ = ["SimConfig", "Scene", "build_scene", "default_device", "SOLVERS"]
@@ -232,7 +233,6 @@ def build_scene(task: str, config: SimConfig | None = None) -> Scene:
     # articulations: in each world the robot's comes first (it was added first)
     art_start = model.articulation_start.numpy()
     joint_child = model.joint_child.numpy()
-    robot_art = []
     art_of_body = {}
     for a in range(model.articulation_count):
         for j in range(art_start[a], art_start[a + 1]):
@@ -251,8 +251,6 @@ def build_scene(task: str, config: SimConfig | None = None) -> Scene:
     origins = np.array([body_q0[w * bpw + 0, :3] for w in range(nw)], dtype=np.float64)  # robot base link
     socket_ids = np.array([[w * spw + s for s in info["socket"]] for w in range(nw)], dtype=np.int32)
     shape_tf = template.shape_transform
-    from ..assets_usd.author import SOCKET_NOMINAL_POS  # authored pose of the socket frame
-
     inv_p, inv_q = _transform_inverse_np(np.array(SOCKET_NOMINAL_POS), np.array([0.0, 0.0, 0.0, 1.0]))
     socket_local = []
     for s in info["socket"]:
