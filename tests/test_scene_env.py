@@ -352,6 +352,69 @@ def _check_peg_in_hand(env):
     assert np.all(peg_r[:, 2, 2] > math.cos(math.radians(5.0)))
 
 
+# ------------------------------------------------------------------ scripted episode and task camera
+
+
+def test_scripted_inserter_seats_the_peg(peg_env):
+    """A short scripted episode: every world reaches the success state (design.md test, checked here
+    in float64 from the body poses), the peg ends centred and seated, contact forces stay moderate."""
+    from vkgrl_newton.envs.scripted import ScriptedInserter
+
+    env = ensure_fresh(peg_env)
+    mark_stepped(env)
+    policy = ScriptedInserter(seed=1)
+    policy.reset(env)
+    fixed = env.fixed_pos_w.double().numpy()
+    seated = np.zeros(E, dtype=bool)
+    for _ in range(130):  # 8.7 s of the 10 s episode; the demonstrator seats the peg in ~5-7 s
+        _, rew, dones, extras = env.step_pose(*policy.act(env))
+        assert not dones.any() and extras["log"]["/physics_resets"] == 0.0
+        peg_p, _ = held_frames(env)
+        d = peg_p - fixed
+        now = (np.linalg.norm(d[:, :2], axis=1) < SUCCESS_XY) & (d[:, 2] < SUCCESS_Z)
+        np.testing.assert_array_equal(env.success.numpy(), now)  # the env's test agrees with the reference
+        np.testing.assert_array_equal(rew.numpy()[now], 4.0)
+        seated |= now
+        if seated.all():
+            break
+    assert seated.all(), seated
+    peg_p, peg_r = held_frames(env)
+    d = peg_p - fixed
+    assert np.all(np.abs(d[:, 2]) < SUCCESS_Z) and np.all(np.linalg.norm(d[:, :2], axis=1) < 2e-4), d
+    assert np.all(peg_r[:, 2, 2] > math.cos(math.radians(1.0)))  # upright in the hole
+    peak = env.force_peak.numpy()
+    assert np.all(peak > 0.1) and np.all(peak < 60.0), peak  # it touched the socket, gently
+
+
+def test_task_camera_pose_and_image(peg_env):
+    """Camera pose against a float64 composition of the hand pose and the Table 5.6 mount, and the
+    rendered images show the peg (orange) and the socket (blue)."""
+    from vkgrl_newton.sim.camera import TASK_CAMERAS, TaskCamera
+
+    env = ensure_fresh(peg_env)
+    spec = TASK_CAMERAS["PegInsert"]
+    cam = TaskCamera(env.model, spec, E)
+    hand = env._state_views(env.state_0)["body_q"][env.hand_idx]
+    poses = cam.camera_poses_w(hand[:, :3], hand[:, 3:]).double().numpy()
+    tilt = math.radians(-20.0)
+    for e in range(E):
+        h = hand[e].double().numpy()
+        r_hand = qmat(h[3:])
+        np.testing.assert_allclose(poses[e, :3], h[:3] + r_hand @ np.array(spec.pos_hand), atol=1e-6)
+        # Newton cameras look along their local -Z: that is the optical axis, the hand z tilted
+        # 20 degrees about the hand y toward the gripper axis
+        forward = qmat(poses[e, 3:]) @ np.array([0.0, 0.0, -1.0])
+        np.testing.assert_allclose(forward, r_hand @ np.array([math.sin(tilt), 0.0, math.cos(tilt)]), atol=1e-6)
+    images = cam.render(env.state_0, hand[:, :3], hand[:, 3:])
+    assert images.shape == (E, spec.height, spec.width, 3) and images.dtype == np.uint8
+    rgb = images.astype(int)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    orange = (r > 150) & (r > g + 30) & (g > b + 30)
+    blue = (b > r + 40) & (b > g + 20)
+    assert np.all(orange.sum(axis=(1, 2)) > 200), orange.sum(axis=(1, 2))
+    assert np.all(blue.sum(axis=(1, 2)) > 200), blue.sum(axis=(1, 2))
+
+
 # ------------------------------------------------------------------ blow-ups (these perturb the env: keep last)
 
 

@@ -42,16 +42,16 @@ APPROACH, ALIGN, DESCEND, ALIGN_ENTRY, INSERT = range(5)
 @dataclass(frozen=True)
 class ScriptedParams:
     approach_height: tuple[float, float] = (0.004, 0.010)  # m above the fixed tip, part bottom
-    approach_time_s: tuple[float, float] = (1.4, 2.0)  # s, minimum-jerk approach (yaw shares it)
+    approach_time_s: tuple[float, float] = (1.2, 1.6)  # s, minimum-jerk approach (yaw shares it)
     descend_speed: tuple[float, float] = (0.008, 0.012)  # m/s, mean speed down to the entry point
-    insert_speed: tuple[float, float] = (0.010, 0.015)  # m/s, mean speed of the insertion
+    insert_speed: tuple[float, float] = (0.020, 0.030)  # m/s, mean speed of the insertion
     push_depth: tuple[float, float] = (0.004, 0.006)  # m below the hole bottom
     entry_height: float = 0.002  # m above the fixed tip
     align_tolerance: float = 0.0004  # m, lateral error of the part bottom counted as aligned
     settle_speed: float = 0.002  # m/s, TCP speed below which the arm counts as still
-    align_timeout_s: float = 1.5  # s in an align phase before going on anyway
+    align_timeout_s: float = 1.0  # s in an align phase before going on anyway
     lateral_p: float = 0.0  # proportional correction of the part's lateral error (m per m)
-    damping_s: float = 0.25  # s, command offset against the TCP velocity (adds Kp * this damping)
+    added_damping: float = 25.0  # N s/m: the command steps back by this / Kp times the TCP velocity
     lateral_gain: float = 0.03  # per control step, integral gain on the part's lateral error
     max_bias: float = 0.004  # m, bound on the integral correction
     retry_after_s: float = 0.6  # s the part may rest on the fixed tip before a retry
@@ -179,5 +179,5 @@ class ScriptedInserter:
         quat = quat_from_euler_xyz(torch.full_like(yaw, math.pi), torch.zeros_like(yaw), yaw)
         cmd_pos = self._reference(t) + quat_rotate(quat, self.offset_tcp) + self.bias
         cmd_pos[:, :2] += p.lateral_p * lateral * correcting.unsqueeze(-1)
-        cmd_pos -= p.damping_s * env.tcp_twist_w[:, :3] * self.started.unsqueeze(-1)
+        cmd_pos -= (p.added_damping / env.kp[:, :3]) * env.tcp_twist_w[:, :3] * self.started.unsqueeze(-1)
         return cmd_pos, quat
