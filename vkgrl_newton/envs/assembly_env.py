@@ -31,6 +31,7 @@ alone and is counted in `extras["log"]["/physics_resets"]`.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field, replace
 
 import gymnasium as gym
@@ -241,6 +242,10 @@ class AssemblyEnv(VecEnv):
         self.joint_lower = wp.to_torch(self.model.joint_limit_lower).view(E, -1)[:, :ARM_DOFS]
         self.joint_upper = wp.to_torch(self.model.joint_limit_upper).view(E, -1)[:, :ARM_DOFS]
 
+        # opt-in time split of the physics step (vkgrl_newton/envs/throughput.py): name -> seconds.
+        # None (the default) costs nothing; a dict synchronizes the device around each stage.
+        self.profile: dict[str, float] | None = None
+
         self._set_family_gains(torch.ones(E, dtype=torch.bool, device=tdev))
         self.reset()
 
@@ -275,9 +280,20 @@ class AssemblyEnv(VecEnv):
     # ------------------------------------------------------------------------------------------
     # physics
 
+    def _tick(self, stage: str | None) -> None:
+        """Profiling: charge the time since the last tick to `stage` (no-op unless self.profile)."""
+        if self.profile is None:
+            return
+        wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        if stage is not None:
+            self.profile[stage] = self.profile.get(stage, 0.0) + now - self._tick_t
+        self._tick_t = now
+
     def _physics_step(self, collect_forces: bool = True) -> None:
         """One 1/120 s physics step: `substeps` x (Jacobian, mass matrix, OSC, collision, solver)."""
         sc, m = self.scene, self.model
+        self._tick(None)
         for _ in range(self.substeps):
             s0 = self.state_0
             v = self._state_views(s0)
@@ -294,9 +310,12 @@ class AssemblyEnv(VecEnv):
                 tcp_quat_w=self._wp["tcp_quat_w"], tcp_twist_w=self._wp["tcp_twist_w"],
                 wrench_w=self._wp["wrench_w"], joint_f=self.joint_f_2d,
             )
+            self._tick("kinematics_osc")
             self.pipeline.collide(s0, self.contacts)
+            self._tick("collision")
             self.solver.step(s0, self.state_1, self.control, self.contacts, self.substep_dt,
                              observables=self.observables)
+            self._tick("solver")
             self.state_0, self.state_1 = self.state_1, self.state_0
         if collect_forces:
             contact_force_reduce(
@@ -310,6 +329,7 @@ class AssemblyEnv(VecEnv):
                 force_norm_sum=self._wp["force_norm_sum"], force_sample_count=self._wp["force_count"],
                 force_peak=self._wp["force_peak"],
             )
+            self._tick("contact_forces")
 
     # ------------------------------------------------------------------------------------------
     # gains and randomization

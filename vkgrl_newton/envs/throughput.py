@@ -1,0 +1,98 @@
+"""Env throughput: env steps per second at several world counts, and where the time goes.
+
+    python -m vkgrl_newton.envs.throughput --num-worlds 1 16 64 --steps 10 --json runs/bench/env.json
+
+Each env step is 8 physics steps (1/120 s) x `substeps` solver substeps, with the OSC kernel every
+substep, plus the contact-force reduction and the Python/torch work of the step (action mapping,
+observations, rewards, blow-up checks). The policy is zero actions through the SAC path (`step`),
+factory family, 4-D actions. Two timed runs per world count:
+1. plain: wall time of `--steps` env steps (no synchronization beyond what the env does itself);
+2. profiled: the same number of steps with the device synchronized around each stage, giving the
+   split kinematics+OSC (Newton's eval_jacobian/eval_mass_matrix and our OSC kernel), collision
+   (Newton's pipeline), solver (MuJoCo-Warp), contact forces (our reduction kernels); "python" is
+   the profiled total minus those stages.
+Resets are excluded (the env is reset before timing). An existing JSON file is never overwritten.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+import warp as wp
+
+from .._io import atomic_write_text
+from ..sim.scene import SimConfig
+from .assembly_env import AssemblyEnv, EnvConfig
+
+STAGES = ("kinematics_osc", "collision", "solver", "contact_forces")
+
+
+def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int = 2) -> dict:
+    env = AssemblyEnv(EnvConfig(num_envs=num_worlds, action_dim=4, family="factory", device=device,
+                                sim=SimConfig(num_worlds=num_worlds)))
+    zero = torch.zeros(num_worlds, 4, device=env.tdev)
+    for _ in range(warmup):
+        env.step(zero)
+    wp.synchronize_device(env.device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.step(zero)
+    wp.synchronize_device(env.device)
+    plain = time.perf_counter() - t0
+
+    env.profile = {}
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.step(zero)
+    wp.synchronize_device(env.device)
+    profiled = time.perf_counter() - t0
+    split = {k: env.profile.get(k, 0.0) / steps * 1e3 for k in STAGES}
+    split["python"] = profiled / steps * 1e3 - sum(split.values())
+    env.profile = None
+    return {
+        "num_worlds": num_worlds,
+        "device": env.device,
+        "steps": steps,
+        "ms_per_env_step": plain / steps * 1e3,
+        "env_steps_per_s": num_worlds * steps / plain,
+        "realtime_factor": num_worlds * steps * (1.0 / 15.0) / plain,
+        "profiled_ms_per_env_step": profiled / steps * 1e3,
+        "split_ms_per_env_step": split,
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--num-worlds", type=int, nargs="+", default=[1, 16, 64])
+    ap.add_argument("--steps", type=int, default=10, help="timed env steps per run")
+    ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
+    args = ap.parse_args(argv)
+    if min(args.num_worlds) < 1 or args.steps < 1:
+        ap.error("--num-worlds and --steps must be >= 1")
+    if args.json is not None and args.json.exists():
+        ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
+    rows = []
+    print(f"{'worlds':>6} {'ms/step':>9} {'env steps/s':>12} {'x realtime':>10}   split ms/step: "
+          + " ".join(f"{k:>14}" for k in (*STAGES, "python")))
+    for n in args.num_worlds:
+        r = measure(n, args.steps, args.device)
+        rows.append(r)
+        sp = r["split_ms_per_env_step"]
+        print(f"{n:>6} {r['ms_per_env_step']:>9.1f} {r['env_steps_per_s']:>12.1f} {r['realtime_factor']:>10.2f}   "
+              + " ".join(f"{sp[k]:>14.1f}" for k in (*STAGES, "python")), flush=True)
+    if args.json is not None:
+        meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
+                "warp": wp.__version__, "torch": torch.__version__}
+        atomic_write_text(args.json, json.dumps({"meta": meta, "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
