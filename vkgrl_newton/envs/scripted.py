@@ -19,15 +19,20 @@ While the part is above the fixed tip and the arm is still, a slow integral corr
 part's lateral error (inside the hole the walls hold it, and a correction would only press it
 sideways); `lateral_p` adds a proportional term, off by default (see below).
 
-Why (measured in this env, Factory gains Kp 100 N/m, Kd 20): the TCP behaves like a ~5 kg mass
-on that spring, damping ratio ~0.3, period ~1.5 s, and without inertia decoupling a vertical
-move drags the TCP 1-2 mm sideways. The chamfer catches ~0.8 mm. Open-loop moves therefore miss
-the hole about half the time. The command adds `added_damping` (cmd = ref - added_damping / Kp * v,
-a damping force through the env's spring), and the stillness gates, the slow integral correction
-and the retry make the insertion reliable (Factory: 31 of 32 episodes, docs/benchmarks.md).
-Feeding the swaying pose back faster (proportional or fast integral gains at 15 Hz) sustained a
-1-2 mm limit cycle. Forge is not solved yet: its force dead zone (up to 5 N, which also removes
-the damping) lets the arm coast inside a band of up to ~12 mm, and this script does not settle there.
+The demonstrator's own impedance. Every command is chosen so that the env's OSC applies the
+demonstrator's wrench F* = K (ref - x) - D v (K 100 N/m, D 45 N s/m, rotation 30 / 10.95), whatever
+the family's gains and dead zone (`_invert_controller`); inserting, K along z is 250 N/m.
+
+Why (measured in this env): with Factory's gains (Kp 100 N/m, Kd 20) the TCP behaves like a
+~5 kg mass on that spring, damping ratio ~0.3, period ~1.5 s, and without inertia decoupling a
+vertical move drags the TCP 1-2 mm sideways; the chamfer catches ~0.8 mm, so open-loop moves
+miss the hole about half the time. The extra damping, the stillness gates, the slow integral
+correction and the retry make it reliable. Feeding the swaying pose back faster (proportional or
+fast integral gains at 15 Hz) sustained a 1-2 mm limit cycle. Forge's force dead zone (up to 5 N
+and 1 N m, swallowing the damping too) lets an arm commanded like in Factory coast at a few mm/s
+inside a band of up to ~12 mm and never settle (Forge success 0.0-0.03 before the inversion).
+In Forge 4D the wrist still floats within its torque dead zone (roll and pitch are not
+commandable), which tilts the peg up to ~3 degrees and can jam it.
 """
 
 from __future__ import annotations
@@ -37,7 +42,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..kmp.pose import euler_xyz_from_quat, quat_conjugate, quat_from_euler_xyz, quat_rotate
+from ..kmp.pose import (euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from_euler_xyz, quat_log, quat_mul,
+                        quat_rotate)
 
 __all__ = ["ScriptedInserter", "ScriptedParams"]
 
@@ -49,14 +55,19 @@ class ScriptedParams:
     approach_height: tuple[float, float] = (0.004, 0.010)  # m above the fixed tip, part bottom
     approach_time_s: tuple[float, float] = (1.2, 1.6)  # s, minimum-jerk approach (yaw shares it)
     descend_speed: tuple[float, float] = (0.008, 0.012)  # m/s, mean speed down to the entry point
-    insert_speed: tuple[float, float] = (0.020, 0.030)  # m/s, mean speed of the insertion
+    insert_speed: tuple[float, float] = (0.010, 0.015)  # m/s, mean speed of the insertion
     push_depth: tuple[float, float] = (0.004, 0.006)  # m below the hole bottom
     entry_height: float = 0.002  # m above the fixed tip
     align_tolerance: float = 0.0004  # m, lateral error of the part bottom counted as aligned
     settle_speed: float = 0.002  # m/s, TCP speed below which the arm counts as still
     align_timeout_s: float = 1.0  # s in an align phase before going on anyway
     lateral_p: float = 0.0  # proportional correction of the part's lateral error (m per m)
-    added_damping: float = 25.0  # N s/m: the command steps back by this / Kp times the TCP velocity
+    stiffness: float = 100.0  # N/m, the demonstrator's TCP stiffness (Factory's Kp)
+    damping: float = 45.0  # N s/m, its TCP damping (Factory's Kd, 20, leaves the arm at zeta ~0.3)
+    insert_stiffness_z: float = 250.0  # N/m along z while inserting: pushes a slightly tilted peg
+    # (Forge 4D: the wrist floats within its torque dead zone, ~3 degrees) past the wall friction
+    rot_stiffness: float = 30.0  # N m/rad (Factory's)
+    rot_damping: float = 10.95  # N m s/rad (Factory's)
     lateral_gain: float = 0.03  # per control step, integral gain on the part's lateral error
     max_bias: float = 0.004  # m, bound on the integral correction
     retry_after_s: float = 0.6  # s the part may rest on the fixed tip before a retry
@@ -184,5 +195,29 @@ class ScriptedInserter:
         quat = quat_from_euler_xyz(torch.full_like(yaw, math.pi), torch.zeros_like(yaw), yaw)
         cmd_pos = self._reference(t) + quat_rotate(quat, self.offset_tcp) + self.bias
         cmd_pos[:, :2] += p.lateral_p * lateral * correcting.unsqueeze(-1)
-        cmd_pos -= (p.added_damping / env.kp[:, :3]) * env.tcp_twist_w[:, :3] * self.started.unsqueeze(-1)
-        return cmd_pos, quat
+        return self._invert_controller(env, cmd_pos, quat)
+
+    def _invert_controller(self, env, pos, quat):
+        """The pose command under which the env's OSC applies the demonstrator's own impedance.
+
+        Per world-frame wrench component the env applies F = dz(Kp (cmd - x) - Kd v), with Forge's
+        dead zone dz(f) = f - d sign(f) for |f| > d, else 0 (d up to 5 N / 1 N m: up to ~12 mm or
+        ~3 degrees of error that produce no force, and no damping either). With
+        cmd = x + (F* + Kd v + sign(F*) d) / Kp the applied force is F* at the start of the control
+        step (the command jumps when F* changes sign; the force does not). F* = K (ref - x) - D v
+        with the demonstrator's own gains; it reads the env's Kp, Kd, d (privileged). In Factory
+        (d = 0) this is cmd = ref - (D - Kd) / Kp v, i.e. damping added through the command.
+        """
+        p = self.params
+        tcp_p, tcp_q = env._tcp_pose()
+        twist = env.tcp_twist_w
+        stiffness = torch.full_like(pos, p.stiffness)
+        stiffness[:, 2] = torch.where(self.phase == INSERT, p.insert_stiffness_z, p.stiffness)
+        force = stiffness * (pos - tcp_p) - p.damping * twist[:, :3]
+        torque = p.rot_stiffness * quat_log(quat_mul(quat, quat_conjugate(tcp_q))) - p.rot_damping * twist[:, 3:]
+        wrench = torch.cat((force, torque), dim=-1)
+        g = (wrench + env.kd * twist + torch.sign(wrench) * env.dead_zone) / env.kp
+        go = self.started.unsqueeze(-1)
+        cmd_pos = torch.where(go, tcp_p + g[:, :3], pos)
+        cmd_quat = torch.where(go, quat_mul(quat_exp(g[:, 3:]), tcp_q), quat)
+        return cmd_pos, cmd_quat
