@@ -90,9 +90,8 @@ class TaskCamera:
     def render(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor) -> np.ndarray:
         """uint8 (E, H, W, 3) images; world i is seen by camera i."""
         self.model.bvh_refit_shapes(state)  # bodies moved since the last render
-        poses = self.camera_poses_w(hand_pos_w, hand_quat_w).detach().cpu().numpy().astype(np.float32)
-        tfs = wp.array([wp.transformf(wp.vec3f(*p[:3]), wp.quatf(*p[3:])) for p in poses],
-                       dtype=wp.transformf, device=self.device)
+        poses = self.camera_poses_w(hand_pos_w, hand_quat_w).detach().float().contiguous()
+        tfs = wp.from_torch(poses, dtype=wp.transformf)  # (p, q xyzw) is Warp's transform layout
         self.sensor.update(state, tfs, self.rays, color_image=self.color)
         h, w = self.spec.height, self.spec.width
         return self.color.numpy().view(np.uint8).reshape(self.num_worlds, h, w, 4)[..., :3].copy()
