@@ -6,7 +6,7 @@ the null-space projector are spelled out with numpy and literal matrix inverses.
 """
 
 import numpy as np
-from quat_ref import q_mul, q_to_matrix
+from quat_ref import q_axis_angle, q_mul, q_to_matrix, random_quats
 import pytest
 import torch
 
@@ -18,15 +18,6 @@ SENTINEL = 12345.0
 
 
 # ------------------------------------------------------------------ float64 reference
-
-
-def q_axis_angle(q):
-    """Axis * angle with angle in [0, pi] (the shorter of q, -q)."""
-    q = q if q[3] >= 0 else -q
-    s = np.linalg.norm(q[:3])
-    if s == 0.0:
-        return np.zeros(3)
-    return q[:3] / s * 2.0 * np.arctan2(s, q[3])
 
 
 def skew(v):
@@ -73,11 +64,6 @@ def reference(inp, kp_null, kd_null, reg=TASK_REG):
 
 
 # ------------------------------------------------------------------ random inputs
-
-
-def random_quats(rng, n):
-    q = rng.normal(size=(n, 4))
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def random_case(num_envs=8, seed=0, arm_dof_start=0, arm_q_start=0, arm_qd_start=0, dead_zone=False,

@@ -10,38 +10,20 @@ import types
 
 import numpy as np
 import torch
-from quat_ref import q_mul, q_to_matrix
+from quat_ref import q_axis_angle, q_conj, q_mul, q_to_matrix, random_quats
 
 from vkgrl_newton.envs.scripted import ALIGN, INSERT, ScriptedInserter, ScriptedParams
-
-
-def _axis_angle(q):
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q)
-    if q[3] < 0:
-        q = -q
-    s = np.linalg.norm(q[:3])
-    return np.zeros(3) if s < 1e-12 else q[:3] / s * 2.0 * np.arctan2(s, q[3])
-
-
-def _conj(q):
-    return np.array([-q[0], -q[1], -q[2], q[3]])
 
 
 def _dead_zone(f, d):
     return np.where(np.abs(f) > d, f - np.sign(f) * d, 0.0)
 
 
-def _random_quat(rng, n):
-    q = rng.normal(size=(n, 4))
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 def test_invert_controller_applies_the_demonstrators_wrench():
     rng = np.random.default_rng(3)
     n = 64
     x = rng.uniform(-0.5, 0.5, (n, 3))
-    q = _random_quat(rng, n)
+    q = random_quats(rng, n)
     twist = rng.normal(scale=(0.02, 0.02, 0.02, 0.2, 0.2, 0.2), size=(n, 6))
     ref = x + rng.normal(scale=0.01, size=(n, 3))
     # reference orientation within ~0.3 rad of the current one
@@ -57,7 +39,7 @@ def test_invert_controller_applies_the_demonstrators_wrench():
     phase = np.where(rng.uniform(size=n) < 0.5, INSERT, ALIGN)
 
     t = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
-    env = types.SimpleNamespace(_tcp_pose=lambda: (t(x), t(q)), tcp_twist_w=t(twist), kp=t(kp), kd=t(kd),
+    env = types.SimpleNamespace(tcp_pose=lambda: (t(x), t(q)), tcp_twist_w=t(twist), kp=t(kp), kd=t(kd),
                                 dead_zone=t(dead))
     params = ScriptedParams()
     policy = ScriptedInserter(params)
@@ -70,14 +52,14 @@ def test_invert_controller_applies_the_demonstrators_wrench():
         k_z = params.insert_stiffness_z if phase[e] == INSERT else params.stiffness
         k = np.array([params.stiffness, params.stiffness, k_z])
         f_star = k * (ref[e] - x[e]) - params.damping * twist[e, :3]
-        t_star = params.rot_stiffness * _axis_angle(q_mul(ref_q[e], _conj(q[e]))) - params.rot_damping * twist[e, 3:]
+        t_star = params.rot_stiffness * q_axis_angle(q_mul(ref_q[e], q_conj(q[e]))) - params.rot_damping * twist[e, 3:]
         # what the env's OSC applies for this command
-        e_r = _axis_angle(q_mul(cmd_q[e], _conj(q[e])))
+        e_r = q_axis_angle(q_mul(cmd_q[e], q_conj(q[e])))
         pre = kp[e] * np.r_[cmd_p[e] - x[e], e_r] - kd[e] * twist[e]
         applied = _dead_zone(pre, dead[e])
         np.testing.assert_allclose(applied, np.r_[f_star, t_star], atol=1e-7, err_msg=f"world {e}")
     # sanity: the check can fail (a command at the reference does not apply F* under a dead zone)
-    pre_naive = kp[-1] * np.r_[ref[-1] - x[-1], _axis_angle(q_mul(ref_q[-1], _conj(q[-1])))] - kd[-1] * twist[-1]
+    pre_naive = kp[-1] * np.r_[ref[-1] - x[-1], q_axis_angle(q_mul(ref_q[-1], q_conj(q[-1])))] - kd[-1] * twist[-1]
     f_star = params.stiffness * (ref[-1] - x[-1]) - params.damping * twist[-1, :3]
     assert not np.allclose(_dead_zone(pre_naive, dead[-1])[:3], f_star, atol=1e-3)
     assert np.allclose(q_to_matrix(cmd_q[0]) @ q_to_matrix(cmd_q[0]).T, np.eye(3), atol=1e-9)

@@ -59,7 +59,7 @@ def collect(env: AssemblyEnv, num_demos: int, seed: int = 0, max_episodes: int =
 
 
 def _eta(env: AssemblyEnv) -> np.ndarray:
-    tcp_p, tcp_q = env._tcp_pose()
+    tcp_p, tcp_q = env.tcp_pose()
     eta = pose_to_eta(tcp_p.double(), tcp_q.double(), env.target_frame_pos_w.double(), env.task.psi_ref)
     return eta.cpu().numpy()
 

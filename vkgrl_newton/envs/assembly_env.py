@@ -266,7 +266,7 @@ class AssemblyEnv(VecEnv):
             }
         return self._views[key]
 
-    def _tcp_pose(self, state=None) -> tuple[torch.Tensor, torch.Tensor]:
+    def tcp_pose(self, state=None) -> tuple[torch.Tensor, torch.Tensor]:
         """TCP position and orientation (world) from the hand body pose."""
         body_q = self._state_views(state or self.state_0)["body_q"]
         hand = body_q[self.hand_idx]
@@ -410,7 +410,7 @@ class AssemblyEnv(VecEnv):
         for _ in range(iters):
             newton.eval_fk(self.model, s.joint_q, s.joint_qd, s)
             newton.eval_jacobian(self.model, s, self.jacobian, mask=sc.robot_articulation_mask)
-            p, q = self._tcp_pose(s)
+            p, q = self.tcp_pose(s)
             p, q = p[idx], q[idx]
             e_p = pos_w - p
             e_r = _orientation_error(quat_w, q)
@@ -423,7 +423,7 @@ class AssemblyEnv(VecEnv):
             qa = v["joint_q"][idx, :ARM_DOFS] + dq
             v["joint_q"][idx, :ARM_DOFS] = torch.clamp(qa, self.joint_lower[idx], self.joint_upper[idx])
         newton.eval_fk(self.model, s.joint_q, s.joint_qd, s)
-        p, q = self._tcp_pose(s)
+        p, q = self.tcp_pose(s)
         return (pos_w - p[idx]).norm(dim=-1), _orientation_error(quat_w, q[idx]).norm(dim=-1)
 
     def _hand_com_w(self, state) -> torch.Tensor:
@@ -492,7 +492,7 @@ class AssemblyEnv(VecEnv):
         self.state_1.assign(self.state_0)
 
         # controller holds the current TCP pose; episode buffers
-        tcp_p, tcp_q = self._tcp_pose()
+        tcp_p, tcp_q = self.tcp_pose()
         self.cmd_pos_w[mask] = tcp_p[mask]
         self.cmd_quat_w[mask] = tcp_q[mask]
         self.actions_applied[mask] = 0.0
@@ -506,7 +506,7 @@ class AssemblyEnv(VecEnv):
             for _ in range(GRIP_SETTLE_STEPS):
                 self._physics_step(collect_forces=False)
             self.kp[:], self.kd[:] = saved
-            tcp_p, tcp_q = self._tcp_pose()
+            tcp_p, tcp_q = self.tcp_pose()
             self.cmd_pos_w[mask] = tcp_p[mask]
             self.cmd_quat_w[mask] = tcp_q[mask]
         contact_force_reset(
@@ -528,7 +528,7 @@ class AssemblyEnv(VecEnv):
     def _place_held_part(self, mask: torch.Tensor) -> None:
         """Held part in the gripper (facts 7.8): TCP flipped about its y, offset, in-hand noise."""
         newton.eval_fk(self.model, self.state_0.joint_q, self.state_0.joint_qd, self.state_0)
-        tcp_p, tcp_q = self._tcp_pose()
+        tcp_p, tcp_q = self.tcp_pose()
         tcp_p, tcp_q = tcp_p[mask], tcp_q[mask]
         n = tcp_p.shape[0]
         flip = torch.tensor((0.0, 1.0, 0.0, 0.0), device=self.tdev).expand(n, 4)  # 180 deg about y
@@ -546,7 +546,7 @@ class AssemblyEnv(VecEnv):
     # step
 
     def get_observations(self) -> TensorDict:
-        tcp_p, tcp_q = self._tcp_pose()
+        tcp_p, tcp_q = self.tcp_pose()
         s = (self.episode_length_buf.float() / self.max_episode_length).unsqueeze(-1)
         parts = [s, tcp_p - self.target_frame_pos_w, tcp_q]
         if self.cfg.family == "forge":
@@ -572,7 +572,7 @@ class AssemblyEnv(VecEnv):
 
     def _delta_targets(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Factory: target = current TCP pose moved by the smoothed action (world frame)."""
-        tcp_p, tcp_q = self._tcp_pose()
+        tcp_p, tcp_q = self.tcp_pose()
         a = self.actions_applied
         pos = tcp_p + a[:, :3] * self.pos_scale
         if self.cfg.action_dim == 4:
@@ -634,7 +634,7 @@ class AssemblyEnv(VecEnv):
         reward = SUCCESS_REWARD * success.float()
         log: dict[str, float | torch.Tensor] = {}
         if self.cfg.family == "forge":
-            tcp_p, tcp_q = self._tcp_pose()
+            tcp_p, tcp_q = self.tcp_pose()
             e_pos = (tcp_p - cmd_pos).norm(dim=-1) / POS_ACTION_SCALE
             r1, p1, y1 = euler_xyz_from_quat(tcp_q)
             r2, p2, y2 = euler_xyz_from_quat(cmd_quat)
@@ -697,7 +697,7 @@ class AssemblyEnv(VecEnv):
         bad |= bqd[..., :3].norm(dim=-1).amax(-1) > MAX_LIN_VEL
         bad |= bqd[..., 3:].norm(dim=-1).amax(-1) > MAX_ANG_VEL
         held_p, _ = self.held_pose()
-        tcp_p, _ = self._tcp_pose()
+        tcp_p, _ = self.tcp_pose()
         bad |= (held_p - tcp_p).norm(dim=-1) > 0.5  # the part was thrown out of the hand
         return bad
 

@@ -19,7 +19,6 @@ import numpy as np
 
 from .._io import atomic_write
 from ..sim.camera import TASK_CAMERAS, TaskCamera
-from ..sim.scene import SimConfig
 from ..tasks import TASKS
 from .assembly_env import AssemblyEnv, EnvConfig
 from .scripted import ScriptedInserter
@@ -28,7 +27,7 @@ from .scripted import ScriptedInserter
 def render_preview(task: str, num_worlds: int, steps: int, seed: int = 0, device: str | None = None) -> np.ndarray:
     """uint8 (H, num_worlds * W, 3): the task camera of each world after `steps` scripted steps."""
     env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_worlds, device=device,
-                                seed=seed, sim=SimConfig(num_worlds=num_worlds)))
+                                seed=seed))
     env.reset()
     policy = ScriptedInserter(seed=seed)
     policy.reset(env)

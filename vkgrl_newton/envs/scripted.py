@@ -17,7 +17,7 @@ Phases (positions are of the held part's bottom, the quantity that must reach th
    go back to phase 1.
 While the part is above the fixed tip and the arm is still, a slow integral correction removes the
 part's lateral error (inside the hole the walls hold it, and a correction would only press it
-sideways); `lateral_p` adds a proportional term, off by default (see below).
+sideways).
 
 The demonstrator's own impedance. Every command is chosen so that the env's OSC applies the
 demonstrator's wrench F* = K (ref - x) - D v (K 100 N/m, D 45 N s/m, rotation 30 / 10.95), whatever
@@ -61,7 +61,6 @@ class ScriptedParams:
     align_tolerance: float = 0.0004  # m, lateral error of the part bottom counted as aligned
     settle_speed: float = 0.002  # m/s, TCP speed below which the arm counts as still
     align_timeout_s: float = 1.0  # s in an align phase before going on anyway
-    lateral_p: float = 0.0  # proportional correction of the part's lateral error (m per m)
     stiffness: float = 100.0  # N/m, the demonstrator's TCP stiffness (Factory's Kp)
     damping: float = 45.0  # N s/m, its TCP damping (Factory's Kd, 20, leaves the arm at zeta ~0.3)
     insert_stiffness_z: float = 250.0  # N/m along z while inserting: pushes a slightly tilted peg
@@ -101,7 +100,7 @@ class ScriptedInserter:
         self.delay = torch.randint(lo, hi + 1, (n,), device=dev, generator=self._gen)
         self.phase = torch.full((n,), APPROACH, dtype=torch.long, device=dev)
         self.retries = torch.zeros(n, dtype=torch.long, device=dev)
-        tcp_p, tcp_q = env._tcp_pose()
+        tcp_p, tcp_q = env.tcp_pose()
         held_p, _ = env.held_pose()
         # rigid grasp offset (TCP - part bottom) in the TCP frame, measured once: the env's reset
         # lets the grasp settle, and the part does not slip measurably in the 20 N grip
@@ -117,11 +116,12 @@ class ScriptedInserter:
         self.yaw0 = yaw.clone()
 
     def _start_segment(self, mask, goal, duration, t):
-        ref = self._reference(t)
-        self.seg_start[mask] = ref[mask]
-        self.seg_goal[mask] = goal[mask]
-        self.seg_t0[mask] = t[mask]
-        self.seg_len[mask] = duration[mask].clamp_min(0.2)
+        # torch.where, not boolean indexing: no device-to-host sync per control step on CUDA
+        m = mask.unsqueeze(-1)
+        self.seg_start = torch.where(m, self._reference(t), self.seg_start)
+        self.seg_goal = torch.where(m, goal, self.seg_goal)
+        self.seg_t0 = torch.where(mask, t, self.seg_t0)
+        self.seg_len = torch.where(mask, duration.clamp_min(0.2), self.seg_len)
 
     def _progress(self, t):
         tau = ((t - self.seg_t0) / self.seg_len).clamp(0.0, 1.0)
@@ -132,8 +132,6 @@ class ScriptedInserter:
 
     def _enter(self, mask, phase, t, goal=None, speed=None):
         """Switch the masked worlds to `phase`; with a goal, start a segment toward it."""
-        if not mask.any():
-            return
         if goal is not None:
             dist = (goal - self._reference(t)).norm(dim=-1)
             self._start_segment(mask, goal, dist / speed, t)
@@ -155,9 +153,8 @@ class ScriptedInserter:
             return goal
 
         start = ~self.started & (env.episode_length_buf >= self.delay)
-        if start.any():
-            self._start_segment(start, on_axis(self.height), self.t_approach, t)
-            self.started |= start
+        self._start_segment(start, on_axis(self.height), self.t_approach, t)
+        self.started |= start
         arrived = t >= self.seg_t0 + self.seg_len
         lateral = (fixed - held_p)[:, :2]
         ready = arrived & (
@@ -194,7 +191,6 @@ class ScriptedInserter:
         yaw = self.yaw0 + d_yaw * s_yaw
         quat = quat_from_euler_xyz(torch.full_like(yaw, math.pi), torch.zeros_like(yaw), yaw)
         cmd_pos = self._reference(t) + quat_rotate(quat, self.offset_tcp) + self.bias
-        cmd_pos[:, :2] += p.lateral_p * lateral * correcting.unsqueeze(-1)
         return self._invert_controller(env, cmd_pos, quat)
 
     def _invert_controller(self, env, pos, quat):
@@ -209,7 +205,7 @@ class ScriptedInserter:
         (d = 0) this is cmd = ref - (D - Kd) / Kp v, i.e. damping added through the command.
         """
         p = self.params
-        tcp_p, tcp_q = env._tcp_pose()
+        tcp_p, tcp_q = env.tcp_pose()
         twist = env.tcp_twist_w
         stiffness = torch.full_like(pos, p.stiffness)
         stiffness[:, 2] = torch.where(self.phase == INSERT, p.insert_stiffness_z, p.stiffness)

@@ -27,15 +27,13 @@ import torch
 import warp as wp
 
 from .._io import atomic_write_text
-from ..sim.scene import SimConfig
 from .assembly_env import AssemblyEnv, EnvConfig
 
 STAGES = ("kinematics_osc", "collision", "solver", "contact_forces")
 
 
 def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int = 2) -> dict:
-    env = AssemblyEnv(EnvConfig(num_envs=num_worlds, action_dim=4, family="factory", device=device,
-                                sim=SimConfig(num_worlds=num_worlds)))
+    env = AssemblyEnv(EnvConfig(num_envs=num_worlds, action_dim=4, family="factory", device=device))
     zero = torch.zeros(num_worlds, 4, device=env.tdev)
     for _ in range(warmup):
         env.step(zero)
