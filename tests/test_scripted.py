@@ -37,6 +37,7 @@ def test_invert_controller_applies_the_demonstrators_wrench():
     dead = rng.uniform(0, 1, (n, 1)) * np.array([5.0, 5, 5, 1, 1, 1])
     dead[: n // 4] = 0.0  # Factory-like worlds: no dead zone
     phase = np.where(rng.uniform(size=n) < 0.5, INSERT, ALIGN)
+    inside = (phase == INSERT) & (rng.uniform(size=n) < 0.5)  # part in the hole: soft lateral spring
 
     t = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
     env = types.SimpleNamespace(tcp_pose=lambda: (t(x), t(q)), tcp_twist_w=t(twist), kp=t(kp), kd=t(kd),
@@ -45,12 +46,14 @@ def test_invert_controller_applies_the_demonstrators_wrench():
     policy = ScriptedInserter(params)
     policy.started = torch.ones(n, dtype=torch.bool)
     policy.phase = torch.tensor(phase)
+    policy.inside = torch.tensor(inside)
     cmd_p, cmd_q = policy._invert_controller(env, t(ref), t(ref_q))
     cmd_p, cmd_q = cmd_p.numpy(), cmd_q.numpy()
 
     for e in range(n):
         k_z = params.insert_stiffness_z if phase[e] == INSERT else params.stiffness
-        k = np.array([params.stiffness, params.stiffness, k_z])
+        k_xy = params.inside_lateral_stiffness if inside[e] else params.stiffness
+        k = np.array([k_xy, k_xy, k_z])
         f_star = k * (ref[e] - x[e]) - params.damping * twist[e, :3]
         t_star = params.rot_stiffness * q_axis_angle(q_mul(ref_q[e], q_conj(q[e]))) - params.rot_damping * twist[e, 3:]
         # what the env's OSC applies for this command
