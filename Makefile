@@ -22,10 +22,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -c $(VENV)/constraints.txt -e ".[test]"
 	touch $(STAMP)
 
-# The main job on its embedded default. Until the simulator exists it fits the KMP
-# prior to synthetic PegInsert demonstrations and draws the KMP bands (runs/kmp_demo/).
+# The main job on its defaults: train KGRL on PegInsert (Factory, 4D; the quick preset on a
+# CPU, the thesis preset on CUDA), recording the demonstrations and fitting the KMP prior first
+# when they are not cached yet. Results in runs/train/<run>/ (metrics.json, tb/, checkpoints/).
 run: $(STAMP)
-	$(PY) train/plot_kmp.py --synthetic PegInsert --out runs/kmp_demo
+	$(PY) train/run.py
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests

@@ -26,6 +26,12 @@ within 2.5 mm and seated within 1 mm, design.md); Forge adds -0.001 (|dp|/0.02 +
 Episodes last 150 steps (10 s) and end by time-out only, all worlds together (Factory). A
 physics blow-up (NaN, runaway velocity, a part thrown away) in one world resets that world
 alone and is counted in `extras["log"]["/physics_resets"]`.
+
+`step` and `step_pose` return (obs, rewards, dones, extras), rsl-rl's contract: dones = time-out
+or blow-up, observations already those after the auto-reset. extras: "time_outs" (E,) bool;
+"physics_resets" (E,) bool, the worlds reset after a blow-up (their transition is not the
+policy's doing; learners drop it); "final_observations", only on steps where some world ended,
+the observations before the reset (time-outs bootstrap from them); "log"; "episode" (metrics).
 """
 
 from __future__ import annotations
@@ -651,13 +657,17 @@ class AssemblyEnv(VecEnv):
         # blow-ups: reset those worlds alone
         blown = self._blown_up()
         n_blown = int(blown.sum())
+        time_out = self.episode_length_buf >= self.max_episode_length
+        extras: dict = {"time_outs": time_out.clone(), "log": log, "physics_resets": blown}
+        if n_blown or bool(time_out.any()):
+            # the observation each world ended its episode in, before the auto-reset replaces it:
+            # off-policy learners bootstrap time-outs from it (rows of blown-up worlds are garbage)
+            extras["final_observations"] = self.get_observations()
         if n_blown:
             self.physics_resets_total += n_blown
             self._reset_worlds(blown, settle=False)
             reward = torch.where(blown, torch.zeros_like(reward), reward)
 
-        time_out = self.episode_length_buf >= self.max_episode_length
-        extras: dict = {"time_outs": time_out.clone(), "log": log}
         log["/physics_resets"] = float(n_blown)
         log["/success"] = success.float().mean()
         if time_out.any():

@@ -1,0 +1,268 @@
+"""Tests of the learning pipeline: the KGRL action path against a float64 reference, and
+`train/run.py` end to end (both methods, checkpoints, kill-and-resume, bad input).
+
+The run tests use 2 worlds and a tiny SAC (--sac overrides) so that they take seconds; the
+KGRL run uses synthetic demonstrations (--demos), so nothing is recorded in the simulator.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from tests.quat_ref import q_to_matrix
+from vkgrl_newton.kmp.demos import synthetic_demos
+from vkgrl_newton.kmp.pose import quat_from_euler_xyz
+from vkgrl_newton.kmp.prior import fit_prior
+from vkgrl_newton.tasks import get_task
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac", "batch_size=8",
+        "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000"]
+
+
+def load_run_module():
+    spec = importlib.util.spec_from_file_location("train_run", ROOT / "train" / "run.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def run_py():
+    return load_run_module()
+
+
+@pytest.fixture(scope="module")
+def peg_demos_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("demos") / "peg_synthetic.npz"
+    synthetic_demos("PegInsert", 8, action_dim=6, seed=1).save(path)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------
+# KGRL action path (no simulator: a stand-in env with the attributes the path reads)
+
+
+def fake_env(num_envs: int, action_dim: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    spec = get_task("PegInsert")
+    yaw = torch.rand(num_envs, generator=g) * 2 * math.pi
+    return SimpleNamespace(
+        task=spec, num_envs=num_envs, num_actions=action_dim, max_episode_length=spec.episode_steps,
+        tdev=torch.device("cpu"), device="cpu",
+        step_index=torch.randint(0, spec.episode_steps + 5, (num_envs,), generator=g, dtype=torch.int32),
+        target_frame_pos_w=(torch.rand(num_envs, 3, generator=g) - 0.5),
+        # q(pi, 0, yaw): gripper pointing down, any yaw (the path passes it through)
+        ref_quat_w=quat_from_euler_xyz(torch.full_like(yaw, math.pi), torch.zeros_like(yaw), yaw).float().contiguous(),
+    )
+
+
+def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:
+    """Rodrigues, float64."""
+    theta = np.linalg.norm(r)
+    if theta < 1e-12:
+        return np.eye(3)
+    k = r / theta
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(theta) * kx + (1 - math.cos(theta)) * kx @ kx
+
+
+@pytest.mark.parametrize("action_dim", [4, 6])
+def test_kgrl_action_path_matches_float64_reference(wp_cpu, action_dim):
+    from vkgrl_newton.agents.kgrl import KGRLActionPath
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=action_dim)
+    env = fake_env(7, action_dim)
+    path = KGRLActionPath(tables, env)
+    g = torch.Generator().manual_seed(3)
+    actions = torch.rand(7, action_dim, generator=g) * 2.4 - 1.2  # some outside [-1, 1]: clamped
+    pos, quat = path.pose(actions)
+    spec = env.task
+    mean, gain = tables.mean.numpy(), tables.gain.numpy()
+    for e in range(7):
+        a = np.clip(actions[e].double().numpy(), -1, 1)
+        zeta = np.zeros(6)
+        zeta[:3] = spec.w_pos * a[:3]
+        if action_dim == 4:
+            zeta[5] = spec.w_rot * a[3]
+        else:
+            zeta[3:] = spec.w_rot * a[3:]
+        n = min(int(env.step_index[e]), tables.n_steps)
+        eta = mean[n] + gain[n] @ zeta
+        want_pos = env.target_frame_pos_w[e].double().numpy() + eta[:3]
+        want_rot = q_to_matrix(env.ref_quat_w[e].double().numpy()) @ rotvec_to_matrix(eta[3:])
+        np.testing.assert_allclose(pos[e].numpy(), want_pos, atol=2e-6)
+        np.testing.assert_allclose(q_to_matrix(quat[e].double().numpy()), want_rot, atol=2e-6)
+        if action_dim == 4:  # roll and pitch stay at the reference: the gripper axis points down
+            np.testing.assert_allclose(q_to_matrix(quat[e].double().numpy())[:, 2], [0, 0, -1], atol=1e-6)
+    # the path reads the env's step counter in place (views, not copies)
+    env.step_index.zero_()
+    pos0, _ = path.pose(torch.zeros(7, action_dim))
+    np.testing.assert_allclose(pos0.numpy(), (env.target_frame_pos_w + tables.mean[0, :3].float()).numpy(), atol=1e-6)
+
+
+def test_kgrl_action_path_rejects_mismatched_tables(wp_cpu):
+    from vkgrl_newton.agents.kgrl import KGRLActionPath
+
+    tables6 = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=6)
+    with pytest.raises(ValueError, match="6D"):
+        KGRLActionPath(tables6, fake_env(3, 4))
+    env = fake_env(3, 6)
+    env.max_episode_length = 225
+    with pytest.raises(ValueError, match="steps"):
+        KGRLActionPath(tables6, env)
+    with pytest.raises(ValueError, match="shape"):
+        KGRLActionPath(tables6, fake_env(3, 6)).pose(torch.zeros(2, 6))
+
+
+# ---------------------------------------------------------------------------------------------
+# train/run.py
+
+
+def read_scalars(tb_dir: Path) -> dict:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(tb_dir))
+    acc.Reload()
+    return {tag: [e.value for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
+def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatch):
+    from vkgrl_newton.agents.checkpoint import load_checkpoint
+    from vkgrl_newton.envs.assembly_env import AssemblyEnv
+
+    run_dir = tmp_path / "sac"
+    base = ["--method", "sac", "--run-dir", str(run_dir), "--eval-episodes", "0", "--checkpoint-every", "100", *TINY]
+    # "kill" the run on its 9th env step: it checkpoints what it has (16 transitions) and exits 130
+    calls = {"n": 0}
+    real_step = AssemblyEnv.step
+
+    def killing_step(self, actions):
+        calls["n"] += 1
+        if calls["n"] == 9:
+            raise KeyboardInterrupt
+        return real_step(self, actions)
+
+    monkeypatch.setattr(AssemblyEnv, "step", killing_step)
+    assert run_py.main([*base, "--total-steps", "40"]) == 130
+    monkeypatch.setattr(AssemblyEnv, "step", real_step)
+    ckpt_path = run_dir / "checkpoints" / "last.pt"
+    killed = load_checkpoint(ckpt_path)
+    assert killed["counters"]["transitions"] == 16 and killed["counters"]["env_steps"] == 8
+    assert killed["agent"]["counters"][2] > 0  # learning started (learning_starts 8)
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["method"] == "sac" and config["sac"]["batch_size"] == 8
+
+    # a directory that holds a run is never reused without --resume
+    with pytest.raises(SystemExit):
+        run_py.main([*base, "--total-steps", "40"])
+
+    # resume with nothing left to do: same counters and weights as the checkpoint
+    assert run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--eval-episodes", "0",
+                        "--no-progress"]) == 0
+    same = load_checkpoint(ckpt_path)
+    assert same["counters"]["transitions"] == 16
+    for name in ("actor", "critic", "critic_target"):
+        for k, v in killed["agent"][name].items():
+            assert torch.equal(v, same["agent"][name][k]), (name, k)
+
+    # resume to 40 transitions: counters continue, weights move
+    assert run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "40", "--eval-episodes", "0",
+                        "--no-progress"]) == 0
+    done = load_checkpoint(ckpt_path)
+    assert done["counters"]["transitions"] == 40 and done["counters"]["env_steps"] == 20
+    assert done["agent"]["counters"][2] > same["agent"]["counters"][2]
+    assert any(not torch.equal(v, done["agent"]["actor"][k]) for k, v in same["agent"]["actor"].items())
+    scalars = read_scalars(run_dir / "tb")
+    assert "train/critic_loss" in scalars and all(math.isfinite(v) for v in scalars["train/critic_loss"])
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["training"]["transitions"] == 40
+
+    # a damaged checkpoint is a clear error, never a silent restart
+    data = ckpt_path.read_bytes()
+    ckpt_path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(SystemExit) as exc:
+        run_py.main(["--run-dir", str(run_dir), "--resume", "--no-progress"])
+    assert exc.value.code == 2
+
+
+def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos_file):
+    run_dir = tmp_path / "kgrl"
+    code = run_py.main(["--method", "kgrl", "--run-dir", str(run_dir), "--demos", str(peg_demos_file),
+                        "--total-steps", "16", "--eval-episodes", "1", *TINY])
+    assert code == 0
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    for key in ("success_rate", "success_rate_any", "mean_contact_force", "peak_contact_force",
+                "time_to_first_success_s", "mean_episode_reward", "env_steps_per_s", "physics_resets"):
+        assert key in metrics
+    assert metrics["episodes"] == 2 and metrics["method"] == "kgrl"
+    assert 0.0 <= metrics["success_rate"] <= 1.0 and metrics["mean_contact_force"] >= 0.0
+    # the KMP tables were fitted beside the demonstrations and are reused
+    assert peg_demos_file.with_name(peg_demos_file.stem + ".kmp4d.npz").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--method", "qlearning"], "invalid choice"),
+    (["--action-dim", "5"], "invalid choice"),
+    (["--num-envs", "0"], "must be an integer >= 1"),
+    (["--sac", "bogus=1"], "FIELD one of"),
+    (["--sac", "batch_size=zero"], "not a valid int"),
+    (["--sac", "batch_size=0"], "batch_size"),
+    (["--resume"], "--resume needs --run-dir"),
+])
+def test_run_bad_flags_are_argparse_errors(run_py, argv, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        run_py.main(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--method", "vision_kgrl"], "VAE"),
+    (["--task", "NutThread"], "not simulated yet"),
+])
+def test_run_unavailable_method_or_task_says_what_is_missing(run_py, argv, message, capsys):
+    assert run_py.main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_plot_runs_mean_and_std_over_seeds(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    spec = importlib.util.spec_from_file_location("plot_runs", ROOT / "train" / "plot_runs.py")
+    plot_runs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(plot_runs)
+    finals = {"sac": [], "kgrl": []}
+    dirs = []
+    for method, offset in (("sac", 0.0), ("kgrl", 0.5)):
+        for seed in range(3):
+            d = tmp_path / f"{method}_{seed}"
+            d.mkdir()
+            (d / "config.json").write_text(json.dumps({"task": "PegInsert", "method": method, "env": "factory",
+                                                       "action_dim": 4, "time_obs": True}))
+            w = SummaryWriter(str(d / "tb"))
+            steps = np.arange(0, 2400 * (6 + seed), 2400)  # runs of different lengths
+            for i, s in enumerate(steps):
+                w.add_scalar("episode/success_rate", offset + 0.1 * seed + 0.01 * i, int(s))
+                w.add_scalar("episode/reward", 10.0 * i, int(s))
+                w.add_scalar("episode/mean_contact_force", 1.0, int(s))
+            w.close()
+            finals[method].append(offset + 0.1 * seed + 0.01 * 5)  # value at the shortest run's end
+            dirs.append(d)
+    out = tmp_path / "curves.png"
+    summary = plot_runs.plot(dirs, out)
+    assert out.stat().st_size > 10_000
+    for method, vals in finals.items():
+        got = summary[method]["episode/success_rate"]
+        assert got["final_mean"] == pytest.approx(np.mean(vals), abs=1e-6)
+        assert got["final_std"] == pytest.approx(np.std(vals), abs=1e-6)
+    with pytest.raises(FileExistsError):
+        plot_runs.plot(dirs, out)

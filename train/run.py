@@ -1,0 +1,373 @@
+"""Train a policy for an assembly task and report the thesis metrics.
+
+    python train/run.py --task PegInsert --method kgrl --env factory --action-dim 4 --seed 0
+
+Methods (thesis ch. 4-5): `sac` acts through Factory's delta-pose mapping; `kgrl` is the same
+SAC acting in the null space of the task's KMP prior (vkgrl_newton/agents/kgrl.py), the action
+path of eq. 4.36. The vision methods need the VAE of the vision issue and say so.
+
+Everything a method needs is produced on first use and cached under `--cache-dir` (KGRL: scripted
+demonstrations recorded in the simulator, and the KMP tables fitted to them). A run directory
+holds:
+
+    config.json          the arguments and the SAC configuration
+    tb/                  tensorboard scalars (episode reward, success rate, mean contact force,
+                         time to first success, losses, alpha, throughput)
+    checkpoints/last.pt  written atomically every --checkpoint-every transitions, on Ctrl-C and
+                         at the end; `--resume` continues from it
+    metrics.json         deterministic evaluation of the final policy (train/evaluate.py's keys)
+                         and a training summary
+
+A run directory that already holds a run is never reused without `--resume`. Resuming restores
+the agent, its optimizers, normalizer and replay buffer, the RNG states and the counters; the
+simulator starts fresh episodes (physics state is not checkpointed).
+
+Steps are env transitions summed over worlds: 16 worlds x 150 control steps = 2400 per episode.
+Defaults: preset `thesis` (Table 5.3, 128 worlds) on CUDA, `quick` (16 worlds) on CPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from vkgrl_newton._io import atomic_write_text  # noqa: E402
+from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_checkpoint  # noqa: E402
+from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
+from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, make_sac_config  # noqa: E402
+from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY  # noqa: E402
+from vkgrl_newton.tasks import TASKS  # noqa: E402
+
+METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
+# per preset: worlds, total transitions, checkpoint interval (transitions)
+RUN_DEFAULTS = {
+    "thesis": {"num_envs": 128, "total_steps": 1_000_000, "checkpoint_every": 50_000},
+    "quick": {"num_envs": 16, "total_steps": 30_000, "checkpoint_every": 4_800},
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("--task", default="PegInsert", choices=sorted(TASKS))
+    ap.add_argument("--method", default="kgrl", choices=METHODS)
+    ap.add_argument("--env", default="factory", choices=FAMILIES)
+    ap.add_argument("--action-dim", type=int, default=4, choices=ACTION_DIMS)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--num-envs", type=_positive_int, default=None, help="worlds (default: the preset's)")
+    ap.add_argument("--total-steps", type=_positive_int, default=None,
+                    help="env transitions summed over worlds (default: the preset's)")
+    ap.add_argument("--preset", default=None, choices=sorted(SAC_PRESETS),
+                    help="SAC hyperparameters (default: thesis on CUDA, quick on CPU)")
+    ap.add_argument("--sac", metavar="FIELD=VALUE", action="append", default=[],
+                    help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256")
+    ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    ap.add_argument("--run-dir", type=Path, default=None,
+                    help="default runs/train/<task>_<method>_<env>_<D>d_seed<S>_<date-time>")
+    ap.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its last checkpoint")
+    ap.add_argument("--no-time-obs", action="store_true",
+                    help="drop normalized time from the policy input (thesis A.1; the KMP still uses it)")
+    ap.add_argument("--checkpoint-every", type=_positive_int, default=None, help="transitions between checkpoints")
+    ap.add_argument("--eval-episodes", type=int, default=2, help="final deterministic evaluation episodes (0: none)")
+    ap.add_argument("--demos", type=Path, default=None, help="KGRL: your own demonstrations (npz)")
+    ap.add_argument("--num-demos", type=int, default=16, help="KGRL: scripted demonstrations to record")
+    ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"), help="demonstrations, KMP tables")
+    ap.add_argument("--no-progress", action="store_true")
+    return ap
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text}")
+    return value
+
+
+def parse_sac_overrides(items: list[str]) -> dict:
+    """FIELD=VALUE strings -> typed SACConfig overrides; ValueError names a bad field or value."""
+    fields = {f.name: f for f in dataclasses.fields(SAC_PRESETS["quick"])}
+    out: dict = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or name not in fields:
+            raise ValueError(f"--sac {item!r}: expected FIELD=VALUE with FIELD one of {sorted(fields)}")
+        current = getattr(SAC_PRESETS["quick"], name)
+        try:
+            if isinstance(current, tuple):
+                out[name] = tuple(int(v) for v in text.split(","))
+            elif isinstance(current, bool):
+                if text.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(text)
+                out[name] = text.lower() in ("true", "1")
+            elif current is None or isinstance(current, float):
+                out[name] = None if text.lower() == "none" else float(text)
+            elif isinstance(current, int):
+                out[name] = int(text)
+            else:
+                out[name] = text
+        except ValueError:
+            raise ValueError(f"--sac {item!r}: {text!r} is not a valid {type(current).__name__} for {name}") from None
+    return out
+
+
+def _default_device() -> str:
+    return "cuda:0" if torch.cuda.is_available() else "cpu"
+
+
+def unavailable(args) -> str | None:
+    """Why this combination cannot run yet, or None."""
+    if args.method.startswith("vision_"):
+        return (f"method {args.method!r} needs the task camera image set and the denoising VAE, which are not "
+                "implemented yet (vision issue); available methods: sac, kgrl")
+    if args.task not in TASK_GEOMETRY:
+        return f"task {args.task!r} is not simulated yet; available tasks: {sorted(TASK_GEOMETRY)}"
+    return None
+
+
+def run_meta(args, obs_dim: int, sac_cfg) -> dict:
+    """What identifies a run; a resumed run must match it field by field."""
+    return {"task": args.task, "method": args.method, "env": args.env, "action_dim": args.action_dim,
+            "seed": args.seed, "num_envs": args.num_envs, "preset": args.preset, "time_obs": not args.no_time_obs,
+            "obs_dim": obs_dim, "sac": dataclasses.asdict(sac_cfg)}
+
+
+# what a resumed run takes from its checkpoint unless given again (then it must agree)
+_RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset")
+
+
+def _explicit_args(argv) -> set[str]:
+    """The options given on the command line (not defaults)."""
+    ap = build_parser()
+    for action in ap._actions:
+        action.default = None
+    ns = ap.parse_args(argv)
+    return {k for k, v in vars(ns).items() if v not in (None, False, [])}
+
+
+def main(argv=None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    args.sac_config, payload = None, None
+    if args.resume:  # the run's identity comes from its checkpoint (a damaged one stops here)
+        if args.run_dir is None:
+            ap.error("--resume needs --run-dir (the run to continue)")
+        try:
+            payload = load_checkpoint(args.run_dir / "checkpoints" / "last.pt", map_location="cpu")
+        except (FileNotFoundError, ValueError) as e:
+            ap.error(f"--resume: {e}")
+        meta, given = payload["meta"], _explicit_args(argv)
+        for name in _RUN_IDENTITY:
+            if name not in given:
+                setattr(args, name, meta[name])
+        if "no_time_obs" not in given:
+            args.no_time_obs = not meta["time_obs"]
+        for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every
+            if name not in given:
+                setattr(args, name, value)
+        if not args.sac:
+            from vkgrl_newton.agents.sac import SACConfig
+
+            args.sac_config = SACConfig(**meta["sac"])
+    reason = unavailable(args)
+    if reason is not None:
+        print(f"train/run.py: {reason}", file=sys.stderr)
+        return 2
+    if args.eval_episodes < 0:
+        ap.error("--eval-episodes must be >= 0")
+    if args.num_demos < 2:
+        ap.error("--num-demos must be >= 2")
+    try:
+        args.sac_overrides = parse_sac_overrides(args.sac)
+    except ValueError as e:
+        ap.error(str(e))
+    args.device = args.device or _default_device()
+    args.preset = args.preset or ("thesis" if args.device.startswith("cuda") else "quick")
+    if args.sac_config is None:
+        try:
+            args.sac_config = make_sac_config(args.preset, **args.sac_overrides)
+        except ValueError as e:
+            ap.error(f"--sac: {e}")
+    defaults = RUN_DEFAULTS[args.preset]
+    args.num_envs = args.num_envs or defaults["num_envs"]
+    args.total_steps = args.total_steps or defaults["total_steps"]
+    args.checkpoint_every = args.checkpoint_every or defaults["checkpoint_every"]
+    run_dir = args.run_dir or Path("runs/train") / (f"{args.task}_{args.method}_{args.env}_{args.action_dim}d_"
+                                                     f"seed{args.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
+    ckpt_path = run_dir / "checkpoints" / "last.pt"
+    if not args.resume and run_dir.exists() and any(run_dir.iterdir()):
+        ap.error(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another directory")
+    args.obs_dim = policy_obs_dim(args.env, not args.no_time_obs)
+    if payload is not None:  # a foreign checkpoint stops here, before anything is built
+        try:
+            check_meta(payload["meta"], run_meta(args, args.obs_dim, args.sac_config), ckpt_path)
+        except ValueError as e:
+            ap.error(f"--resume: {e}")
+    return train(args, run_dir, ckpt_path, payload)
+
+
+def policy_obs_dim(family: str, time_obs: bool) -> int:
+    """Thesis eq. 5.5: s_t (1), TCP position in the target frame (3), TCP quaternion (4), Forge force (3)."""
+    return 8 + (3 if family == "forge" else 0) - (0 if time_obs else 1)
+
+
+def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
+    from torch.utils.tensorboard import SummaryWriter
+
+    from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
+
+    torch.manual_seed(args.seed)
+    log = tqdm.write
+
+    env = AssemblyEnv(EnvConfig(task=args.task, family=args.env, action_dim=args.action_dim, num_envs=args.num_envs,
+                                device=args.device, seed=args.seed))
+    action_path = None
+    if args.method == "kgrl":
+        from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
+
+        tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos,
+                                       num_demos=args.num_demos, device=args.device, log=log)
+        action_path = KGRLActionPath(tables, env)
+    step_fn = action_path.step if action_path is not None else env.step
+    time_obs = not args.no_time_obs
+    obs_dim = env.obs_dim - (0 if time_obs else 1)
+    assert obs_dim == args.obs_dim, (obs_dim, args.obs_dim)
+    sac_cfg = args.sac_config
+    agent = SAC(obs_dim, args.action_dim, sac_cfg, device=env.tdev, seed=args.seed)
+    meta = run_meta(args, obs_dim, sac_cfg)
+    counters = {"transitions": 0, "env_steps": 0, "episodes": 0, "wall_s": 0.0}
+    if payload is not None:
+        agent.load_state_dict(payload["agent"])
+        counters.update(payload["counters"])
+        _restore_rng(payload["rng"], env)
+        log(f"resumed {run_dir} at {counters['transitions']} transitions")
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(run_dir / "config.json", json.dumps({**meta, "total_steps": args.total_steps,
+                                                               "checkpoint_every": args.checkpoint_every,
+                                                               "device": args.device}, indent=2))
+
+    def checkpoint() -> None:
+        save_checkpoint(ckpt_path, {"meta": meta, "counters": dict(counters), "agent": agent.state_dict(),
+                                    "rng": _rng_state(env), "plan": {"total_steps": args.total_steps,
+                                                                     "checkpoint_every": args.checkpoint_every}})
+
+    writer = SummaryWriter(str(run_dir / "tb"), purge_step=counters["transitions"] if payload else None)
+    bar = tqdm(total=args.total_steps, initial=counters["transitions"], unit="tr", disable=args.no_progress,
+               desc=f"{args.method} {args.task} {args.env} {args.action_dim}D")
+    obs = env.get_observations()
+    last_ckpt = counters["transitions"] // args.checkpoint_every
+    env_time = update_time = 0.0
+    env_steps0, grad0 = counters["env_steps"], agent.num_updates
+    status: dict[str, float] = {}
+    t_start = time.perf_counter()
+    try:
+        while counters["transitions"] < args.total_steps:
+            t0 = time.perf_counter()
+            x = policy_observation(obs, time_obs)
+            a = agent.act(x) if agent.ready() else agent.random_actions(env.num_envs)
+            next_obs, reward, dones, extras = step_fn(a)
+            x_next = policy_observation(next_obs, time_obs)
+            if "final_observations" in extras:  # time-outs bootstrap from the state they ended in
+                final = policy_observation(extras["final_observations"], time_obs)
+                x_next = torch.where(dones.unsqueeze(-1), final, x_next)
+            # episodes end by time-out only: nothing is terminal; blown-up worlds' rows are dropped
+            keep = ~extras["physics_resets"]
+            terminated = torch.zeros_like(reward)
+            if bool(keep.all()):
+                agent.add(x, a, reward, x_next, terminated)
+            elif bool(keep.any()):
+                agent.add(x[keep], a[keep], reward[keep], x_next[keep], terminated[keep])
+            obs = next_obs
+            counters["transitions"] += env.num_envs
+            counters["env_steps"] += 1
+            t1 = time.perf_counter()
+            env_time += t1 - t0
+            if agent.update_due():
+                losses = agent.update()
+                update_time += time.perf_counter() - t1
+                if counters["env_steps"] % 10 == 0:
+                    for k, v in losses.items():
+                        writer.add_scalar(f"train/{k}", v, counters["transitions"])
+                status["alpha"] = losses.get("alpha", float("nan"))
+            if "episode" in extras:
+                ep = extras["episode"]
+                counters["episodes"] += 1
+                step = counters["transitions"]
+                writer.add_scalar("episode/reward", ep["episode_reward"], step)
+                writer.add_scalar("episode/success_rate", ep["success_rate"], step)
+                writer.add_scalar("episode/success_rate_any", ep["success_rate_any"], step)
+                writer.add_scalar("episode/mean_contact_force", ep["mean_contact_force"], step)
+                writer.add_scalar("episode/peak_contact_force", ep["peak_contact_force"], step)
+                if not math.isnan(ep["time_to_first_success_s"]):
+                    writer.add_scalar("episode/time_to_first_success_s", ep["time_to_first_success_s"], step)
+                writer.add_scalar("perf/env_steps_per_s", (counters["env_steps"] - env_steps0) * env.num_envs
+                                  / max(env_time, 1e-9), step)
+                if update_time > 0:
+                    writer.add_scalar("perf/grad_steps_per_s", (agent.num_updates - grad0) / update_time, step)
+                writer.add_scalar("perf/physics_resets", env.physics_resets_total, step)
+                status.update(success=ep["success_rate"], reward=ep["episode_reward"], force=ep["mean_contact_force"])
+            bar.update(env.num_envs)
+            if status:
+                bar.set_postfix({k: f"{v:.3g}" for k, v in status.items()}, refresh=False)
+            if counters["transitions"] // args.checkpoint_every > last_ckpt:
+                last_ckpt = counters["transitions"] // args.checkpoint_every
+                counters["wall_s"] += time.perf_counter() - t_start
+                t_start = time.perf_counter()
+                checkpoint()
+    except KeyboardInterrupt:
+        counters["wall_s"] += time.perf_counter() - t_start
+        checkpoint()
+        bar.close()
+        writer.close()
+        log(f"interrupted; checkpoint at {counters['transitions']} transitions in {ckpt_path} (--resume continues)")
+        return 130
+    counters["wall_s"] += time.perf_counter() - t_start
+    checkpoint()
+    bar.close()
+
+    summary = {"transitions": counters["transitions"], "env_steps": counters["env_steps"],
+               "episodes": counters["episodes"], "gradient_steps": agent.num_updates, "wall_s": counters["wall_s"],
+               "train_env_steps_per_s": (counters["env_steps"] - env_steps0) * env.num_envs / max(env_time, 1e-9),
+               "grad_steps_per_s": (agent.num_updates - grad0) / update_time if update_time > 0 else float("nan"),
+               "physics_resets": env.physics_resets_total}
+    metrics: dict = {}
+    if args.eval_episodes:
+        metrics = evaluate(env, AgentPolicy(agent, action_path, time_obs), args.eval_episodes,
+                           progress=not args.no_progress, desc="final evaluation")
+        for k in ("success_rate", "mean_contact_force", "time_to_first_success_s", "mean_episode_reward"):
+            writer.add_scalar(f"eval/{k}", metrics[k], counters["transitions"])
+    writer.close()
+    result = {**metrics, **meta, "device": env.device, "checkpoint": str(ckpt_path), "training": summary}
+    result.pop("sac")
+    metrics_path = run_dir / "metrics.json"
+    atomic_write_text(metrics_path, json.dumps(result, indent=2), overwrite=True)  # the run's own file
+    shown = {k: result[k] for k in ("success_rate", "mean_contact_force", "time_to_first_success_s",
+                                    "mean_episode_reward") if k in result}
+    log(f"done: {json.dumps(shown)} -> {metrics_path}")
+    return 0
+
+
+def _rng_state(env) -> dict:
+    return {"torch": torch.get_rng_state(), "env_torch": env.generator.get_state(),
+            "env_numpy": json.dumps(env.np_rng.bit_generator.state)}
+
+
+def _restore_rng(state: dict, env) -> None:
+    torch.set_rng_state(state["torch"])
+    env.generator.set_state(state["env_torch"])
+    env.np_rng.bit_generator.state = json.loads(state["env_numpy"])
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    sys.exit(main())

@@ -1,0 +1,163 @@
+"""SAC update throughput: gradient steps per second of our agent vs stable-baselines3's SAC.
+
+    python -m vkgrl_newton.agents.bench_sac --device cpu --steps 50 --json runs/bench/sac.json
+
+Both learn on the thesis network ([512, 256, 128] ELU, 2 critics, AdamW weight decay 1e-4) and
+batch (256), from a replay buffer pre-filled with random transitions, on the same device and in
+the same process. Three variants, timed interleaved and repeated (the median is reported, since
+a shared CPU drifts):
+  ours_thesis  Table 5.3 as configured (policy_delay 4: the actor and alpha every 4th step)
+  ours_delay1  policy_delay 1: the same work per step as SB3, whose SAC has no policy delay
+  sb3          stable_baselines3.SAC.train(gradient_steps, batch_size), if stable-baselines3 is
+               installed (an optional extra; skipped with a message otherwise)
+Not identical work: ours also normalizes observations (rsl-rl EmpiricalNormalization); SB3 here
+has no VecNormalize. Default dims: the Factory 4D policy observation is 1 + 3 + 4 = 8 (thesis
+eq. 5.5-5.6: 8, 11, 24 or 27) and the action is 4D.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from vkgrl_newton.agents.sac import SAC, make_sac_config
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _random_transitions(n: int, obs_dim: int, action_dim: int, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        "obs": rng.normal(size=(n, obs_dim)).astype(np.float32),
+        "action": rng.uniform(-1, 1, size=(n, action_dim)).astype(np.float32),
+        "reward": rng.normal(size=n).astype(np.float32),
+        "next_obs": rng.normal(size=(n, obs_dim)).astype(np.float32),
+        "terminated": (rng.uniform(size=n) < 0.01).astype(np.float32),
+    }
+
+
+def make_ours(args: argparse.Namespace, data: dict[str, np.ndarray], policy_delay: int) -> Callable[[int], None]:
+    cfg = make_sac_config("thesis", buffer_size=args.fill, learning_starts=0, batch_size=args.batch_size,
+                          hidden_dims=tuple(args.hidden), policy_delay=policy_delay)
+    agent = SAC(args.obs_dim, args.action_dim, cfg, args.device, seed=0)
+    agent.add(*(torch.from_numpy(data[k]) for k in ("obs", "action", "reward", "next_obs", "terminated")))
+    return lambda steps: agent.update(steps)
+
+
+def make_sb3(args: argparse.Namespace, data: dict[str, np.ndarray]) -> Callable[[int], None]:
+    import gymnasium as gym
+    from stable_baselines3 import SAC as SB3SAC
+    from stable_baselines3.common.logger import Logger
+
+    class _Spaces(gym.Env):  # SB3 reads the spaces from an env; it is never stepped here
+        observation_space = gym.spaces.Box(-np.inf, np.inf, (args.obs_dim,), np.float32)
+        action_space = gym.spaces.Box(-1.0, 1.0, (args.action_dim,), np.float32)
+
+        def reset(self, *, seed=None, options=None):
+            return np.zeros(args.obs_dim, np.float32), {}
+
+        def step(self, action):
+            return np.zeros(args.obs_dim, np.float32), 0.0, False, False, {}
+
+    model = SB3SAC(
+        "MlpPolicy", _Spaces(), learning_rate=4e-4, buffer_size=args.fill, learning_starts=0,
+        batch_size=args.batch_size, tau=0.005, gamma=0.99, device=args.device, seed=0,
+        policy_kwargs=dict(net_arch=list(args.hidden), activation_fn=torch.nn.ELU, n_critics=2,
+                           optimizer_class=torch.optim.AdamW, optimizer_kwargs=dict(weight_decay=1e-4)),
+    )
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    rb = model.replay_buffer  # arrays (buffer_size, n_envs=1, ...); fill them directly
+    rb.observations[:, 0] = data["obs"]
+    rb.next_observations[:, 0] = data["next_obs"]
+    rb.actions[:, 0] = data["action"]
+    rb.rewards[:, 0] = data["reward"]
+    rb.dones[:, 0] = data["terminated"]
+    rb.pos, rb.full = 0, True
+    return lambda steps: model.train(gradient_steps=steps, batch_size=args.batch_size)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--steps", type=int, default=50, help="gradient steps per timed call")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--obs-dim", type=int, default=8)
+    p.add_argument("--action-dim", type=int, default=4)
+    p.add_argument("--batch-size", type=int, default=256)
+    p.add_argument("--hidden", type=int, nargs="+", default=[512, 256, 128])
+    p.add_argument("--fill", type=int, default=20_000, help="random transitions in the replay buffer")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch intra-op threads (default: torch's). On a shared 2-core CPU, 1 avoids OpenMP "
+                        "barriers stalling whenever another process holds a core")
+    p.add_argument("--json", type=Path, default=None)
+    args = p.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    data = _random_transitions(args.fill, args.obs_dim, args.action_dim, seed=0)
+
+    runners: dict[str, Callable[[int], None]] = {
+        "ours_thesis": make_ours(args, data, policy_delay=4),
+        "ours_delay1": make_ours(args, data, policy_delay=1),
+    }
+    sb3_note = None
+    try:
+        runners["sb3"] = make_sb3(args, data)
+    except ImportError as e:
+        sb3_note = f"skipped: stable-baselines3 not importable ({e}); pip install stable-baselines3 --no-deps"
+        print(f"[bench_sac] SB3 {sb3_note}")
+
+    times: dict[str, list[float]] = {k: [] for k in runners}
+    for run in runners.values():  # warm-up: allocator, optimizer state, lazy init
+        run(max(1, min(8, args.steps)))
+    for _ in range(args.repeats):
+        for name, run in runners.items():  # interleaved so drift hits all variants alike
+            _sync(device)
+            t = time.perf_counter()
+            run(args.steps)
+            _sync(device)
+            times[name].append(time.perf_counter() - t)
+
+    results = {}
+    for name, ts in times.items():
+        results[name] = {"grad_steps_per_s_median": args.steps / statistics.median(ts),
+                         "grad_steps_per_s_best": args.steps / min(ts), "seconds": ts}
+    if sb3_note:
+        results["sb3"] = {"note": sb3_note}
+    cpu = platform.processor()
+    if Path("/proc/cpuinfo").exists():
+        names = [ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                 if ln.startswith("model name")]
+        cpu = names[0] if names else cpu
+    report = {
+        "device": str(device), "cpu": cpu, "cpu_count": os.cpu_count(), "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "obs_dim": args.obs_dim, "action_dim": args.action_dim, "batch_size": args.batch_size,
+        "hidden": args.hidden, "activation": "elu", "n_critics": 2, "steps_per_call": args.steps,
+        "repeats": args.repeats, "results": results,
+    }
+    for name, r in results.items():
+        line = r.get("note") or (f"{r['grad_steps_per_s_median']:8.1f} grad steps/s "
+                                 f"(best {r['grad_steps_per_s_best']:.1f})")
+        print(f"{name:12s} {line}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2))
+    return report
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,117 @@
+"""The KGRL action path (thesis eqs. 4.36, 5.20, 5.25, 5.32) and the task's KMP prior.
+
+A policy action a in [-1, 1]^D becomes the scaled null-space input zeta = w * a (w_pos on x, y, z;
+w_rot on the rotations, thesis Table 5.4; in 4D zeta = (x, y, z, 0, 0, yaw)), the per-step KMP
+tables give eta = m[n] + B[n] zeta at the env's control step n, and eta becomes an absolute TCP
+pose command relative to the observed target frame and q_ref: the Warp kernel
+`kernels/kmp_horizon.py` does the last two steps for all worlds at once. The env's `step_pose`
+then holds that command for the control step. zeta = 0 follows the prior alone.
+
+The prior (`load_or_make_prior`) is fitted to scripted demonstrations recorded in the simulator
+(envs/demonstrations.py), cached per task under `cache_dir` and reused; 4D and 6D tables come
+from the same 6D demonstrations.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import warp as wp
+
+from ..kernels.kmp_horizon import kmp_horizon_pose, vec6f
+from ..kmp.demos import DemoSet
+from ..kmp.prior import load_or_fit_prior
+from ..kmp.tables import KMPTables
+
+__all__ = ["KGRLActionPath", "load_or_make_prior", "demos_path_for"]
+
+
+class KGRLActionPath:
+    """Maps policy actions to absolute TCP pose commands through the KMP tables, batched over worlds."""
+
+    def __init__(self, tables: KMPTables, env):
+        spec = env.task
+        if tables.action_dim != env.num_actions:
+            raise ValueError(f"KMP tables are {tables.action_dim}D, the env acts in {env.num_actions}D")
+        if tables.n_steps != env.max_episode_length:
+            raise ValueError(f"KMP tables cover {tables.n_steps} steps, an episode has {env.max_episode_length}: "
+                             f"tables of another task or KMP dt")
+        self.tables = tables
+        self.env = env
+        self.action_dim = env.num_actions
+        E, tdev = env.num_envs, env.tdev
+        # zeta = scale * a, with a embedded in the 6D (x, y, z, rx, ry, rz) layout of the tables
+        self.axes = [0, 1, 2, 5] if self.action_dim == 4 else [0, 1, 2, 3, 4, 5]
+        scale = [spec.w_pos] * 3 + [spec.w_rot] * (self.action_dim - 3)
+        self.scale = torch.tensor(scale, dtype=torch.float32, device=tdev)
+        self.zeta = torch.zeros(E, 6, dtype=torch.float32, device=tdev)
+        self.eta = torch.zeros(E, 6, dtype=torch.float32, device=tdev)
+        self.tcp_pos_cmd_w = torch.zeros(E, 3, dtype=torch.float32, device=tdev)
+        self.tcp_quat_cmd_w = torch.zeros(E, 4, dtype=torch.float32, device=tdev)
+        self._mean_wp, self._gain_wp = tables.to_warp(env.device)
+        self._wp = {  # warp views of the torch buffers (same memory), made once
+            "zeta": wp.from_torch(self.zeta, dtype=vec6f),
+            "eta": wp.from_torch(self.eta, dtype=vec6f),
+            "pos": wp.from_torch(self.tcp_pos_cmd_w, dtype=wp.vec3),
+            "quat": wp.from_torch(self.tcp_quat_cmd_w, dtype=wp.quat),
+            "step_index": wp.from_torch(env.step_index, dtype=wp.int32),
+            "target_pos_w": wp.from_torch(env.target_frame_pos_w, dtype=wp.vec3),
+            "ref_quat_w": wp.from_torch(env.ref_quat_w, dtype=wp.quat),
+        }
+
+    def pose(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Commanded TCP pose (pos (E, 3), quat (E, 4) xyzw, world frame) for actions (E, D) in [-1, 1]."""
+        if actions.shape != (self.env.num_envs, self.action_dim):
+            raise ValueError(f"actions must have shape ({self.env.num_envs}, {self.action_dim}), got {tuple(actions.shape)}")
+        self.zeta[:, self.axes] = actions.clamp(-1.0, 1.0).to(self.zeta) * self.scale
+        w = self._wp
+        kmp_horizon_pose(w["step_index"], w["zeta"], self._mean_wp, self._gain_wp, w["target_pos_w"], w["ref_quat_w"],
+                         w["eta"], w["pos"], w["quat"])
+        return self.tcp_pos_cmd_w, self.tcp_quat_cmd_w
+
+    def step(self, actions: torch.Tensor):
+        """One env control step on the KGRL path; returns what `env.step` returns."""
+        return self.env.step_pose(*self.pose(actions))
+
+
+def demos_path_for(cache_dir, task: str, num_demos: int, seed: int) -> Path:
+    return Path(cache_dir) / task / f"demos_scripted_factory_n{num_demos}_seed{seed}.npz"
+
+
+def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path | None = None, num_demos: int = 16,
+                       num_envs: int = 16, device: str | None = None, seed: int = 0,
+                       log=print) -> tuple[KMPTables, Path]:
+    """The task's KMP tables, with the demonstrations they come from recorded first if missing.
+
+    demos: a demonstration npz of your own; None records `num_demos` scripted ones in the
+    Factory env (6D, `num_envs` worlds) into `cache_dir/<task>/` once and reuses them. The tables
+    are cached beside the demonstrations (kmp.prior.load_or_fit_prior: keyed by content).
+    Returns (tables, demonstration path).
+    """
+    if demos is None:
+        path = demos_path_for(cache_dir, task, num_demos, seed)
+        if not path.exists():
+            from ..envs.assembly_env import AssemblyEnv, EnvConfig
+            from ..envs.demonstrations import record_demonstrations
+
+            log(f"recording {num_demos} scripted {task} demonstrations into {path} (once; cached)")
+            env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_envs, device=device,
+                                        seed=seed))
+            demo_set, episodes = record_demonstrations(env, num_demos, seed=seed, max_episodes=max(4, 3 * num_demos // num_envs + 2))
+            if demo_set is None or len(demo_set.demo_lengths) < num_demos:
+                got = 0 if demo_set is None else len(demo_set.demo_lengths)
+                raise RuntimeError(f"the scripted demonstrator seated the part in only {got} of {episodes * num_envs} "
+                                   f"episodes, {num_demos} needed; see docs/benchmarks.md for its success rate")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            demo_set.save(path)
+    else:
+        path = Path(demos)
+        if not path.exists():
+            raise FileNotFoundError(f"demonstrations {path} not found")
+        demo_task = DemoSet.load(path).task
+        if demo_task != task:
+            raise ValueError(f"demonstrations {path} are of task {demo_task!r}, not {task!r}")
+    tables, tables_path, rebuilt = load_or_fit_prior(path, action_dim=action_dim, seed=seed)
+    log(f"KMP prior {'fitted' if rebuilt else 'loaded'}: {tables_path}")
+    return tables, path

@@ -1,0 +1,379 @@
+"""Soft Actor-Critic (Haarnoja et al. 2018), as trained in the thesis (Table 5.3, SBX).
+
+Read top to bottom: config and presets, replay buffer, actor, critic ensemble, the agent.
+Everything lives on one training device; the N worlds of the simulator are added as one batch.
+
+Time-out convention (the caller's job): `add(obs, action, reward, next_obs, terminated)` takes
+`terminated = dones & ~time_outs`, and `next_obs` must be the true final observation of the
+episode (before the auto-reset), so a time-out still bootstraps from the state it ended in.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from rsl_rl.modules import EmpiricalNormalization
+from torch import nn
+
+Tensor = torch.Tensor
+ACTIVATIONS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh}
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    buffer_size: int = 1_000_000
+    batch_size: int = 256
+    lr: float = 4e-4
+    # Counted in env transitions summed over worlds (one batched step of N worlds adds N), as
+    # SB3/SBX count num_timesteps; until then the caller acts with `random_actions`.
+    learning_starts: int = 5_000
+    train_every: int = 1  # batched env steps between two `update` calls
+    gradient_steps: int = 512  # per `update` call
+    n_critics: int = 2
+    hidden_dims: tuple[int, ...] = (512, 256, 128)
+    activation: str = "elu"
+    obs_normalization: bool = True
+    # Decoupled weight decay of AdamW for actor and critics. 1e-4 is optax.adamw's default,
+    # which the thesis used through SBX (torch's default would be 1e-2). log_alpha uses plain
+    # Adam, as in SBX: decaying it would pull alpha towards 1.
+    weight_decay: float = 1e-4
+    policy_delay: int = 4  # critic updates per actor + temperature update
+    gamma: float = 0.99
+    tau: float = 0.005  # Polyak rate; targets move after every critic update, as in SBX
+    init_alpha: float = 1.0
+    target_entropy: float | None = None  # None -> -dim(A)
+    # Hard clamp to [-20, 2] as SB3/SBX (the thesis's code); CleanRL's [-5, 2] is tighter.
+    log_std_min: float = -20.0
+    log_std_max: float = 2.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden_dims", tuple(int(h) for h in self.hidden_dims))
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"SACConfig.activation={self.activation!r}; allowed: {sorted(ACTIVATIONS)}")
+        for name in ("buffer_size", "batch_size", "train_every", "gradient_steps", "n_critics", "policy_delay"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be >= 1")
+        if not self.hidden_dims or min(self.hidden_dims) < 1:
+            raise ValueError(f"SACConfig.hidden_dims={self.hidden_dims!r} must be non-empty positive ints")
+        if not self.log_std_min < self.log_std_max:
+            raise ValueError("SACConfig.log_std_min must be < log_std_max")
+        for name, lo, hi in (("tau", 0.0, 1.0), ("gamma", 0.0, 1.0)):
+            if not lo < getattr(self, name) <= hi:
+                raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be in ({lo}, {hi}]")
+        if not self.init_alpha > 0 or not self.lr > 0:
+            raise ValueError("SACConfig.init_alpha and SACConfig.lr must be > 0")
+
+
+SAC_PRESETS: dict[str, SACConfig] = {
+    "thesis": SACConfig(),  # Table 5.3; gamma, tau, alpha, entropy target, log_std bounds: SBX defaults
+    # A 2-core CPU with 8-16 worlds at ~2 batched steps/s: ~30k transitions in 15 min, so a
+    # smaller net (~185 grad steps/s on that CPU), an early start and 32 gradient steps per batched
+    # env step (update-to-data ratio 2-4 for N = 16-8 worlds, ~0.2 s of updates per env step).
+    "quick": SACConfig(
+        buffer_size=200_000, hidden_dims=(256, 256), learning_starts=1_024, gradient_steps=32, policy_delay=2
+    ),
+}
+
+
+def make_sac_config(preset: str = "thesis", **overrides: object) -> SACConfig:
+    """A preset with some fields replaced; ValueError names an unknown preset or field."""
+    if preset not in SAC_PRESETS:
+        raise ValueError(f"unknown SAC preset {preset!r}; allowed: {sorted(SAC_PRESETS)}")
+    fields = {f.name for f in dataclasses.fields(SACConfig)}
+    for name in overrides:
+        if name not in fields:
+            raise ValueError(f"unknown SACConfig field {name!r}; allowed: {sorted(fields)}")
+    return dataclasses.replace(SAC_PRESETS[preset], **overrides)
+
+
+# ----------------------------------------------------------------------------- replay buffer
+class Batch(NamedTuple):
+    obs: torch.Tensor  # (B, obs_dim), raw (normalized by the agent at sample time)
+    action: torch.Tensor  # (B, action_dim) in [-1, 1]
+    reward: torch.Tensor  # (B,)
+    next_obs: torch.Tensor  # (B, obs_dim)
+    terminated: torch.Tensor  # (B,) float, 1 = no bootstrap
+
+
+class ReplayBuffer:
+    """Preallocated circular buffer on the training device, filled N worlds at a time."""
+
+    FIELDS = Batch._fields
+
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device | str) -> None:
+        self.capacity, self.device = int(capacity), torch.device(device)
+        shapes = {"obs": (obs_dim,), "action": (action_dim,), "reward": (), "next_obs": (obs_dim,), "terminated": ()}
+        # empty, not zeros: a 1M-row buffer costs no time or pages until it is written
+        self.data = {k: torch.empty((self.capacity, *s), device=self.device) for k, s in shapes.items()}
+        self.ptr = 0  # next row to write
+        self.size = 0  # filled rows
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor) -> None:
+        rows = [obs, action, reward, next_obs, terminated]
+        rows = [torch.as_tensor(x, device=self.device).to(torch.float32) for x in rows]
+        n = rows[0].shape[0]
+        if n > self.capacity:  # only the newest `capacity` rows can survive
+            rows, n = [x[-self.capacity :] for x in rows], self.capacity
+        idx = (self.ptr + torch.arange(n, device=self.device)) % self.capacity
+        for k, x in zip(self.FIELDS, rows):
+            self.data[k][idx] = x.reshape(n, *self.data[k].shape[1:])
+        self.ptr = (self.ptr + n) % self.capacity
+        self.size = min(self.size + n, self.capacity)
+
+    def sample(self, batch_size: int, generator: torch.Generator) -> Batch:
+        idx = torch.randint(0, self.size, (batch_size,), generator=generator, device=self.device)
+        return Batch(*(self.data[k][idx] for k in self.FIELDS))
+
+    def state_dict(self) -> dict:
+        # only the filled part: rows [0, size) are the filled ones whether or not it has wrapped
+        return {"capacity": self.capacity, "ptr": self.ptr, "size": self.size,
+                **{k: v[: self.size].clone() for k, v in self.data.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        if int(state["capacity"]) != self.capacity:
+            raise ValueError(f"replay buffer capacity {state['capacity']} != {self.capacity}")
+        self.ptr, self.size = int(state["ptr"]), int(state["size"])
+        for k in self.FIELDS:
+            self.data[k][: self.size] = state[k].to(self.device)
+
+
+# ----------------------------------------------------------------------------- networks
+def _init_linear_(weight: torch.Tensor, bias: torch.Tensor, fan_in: int, generator: torch.Generator) -> None:
+    """nn.Linear's default distribution U(+-1/sqrt(fan_in)), drawn from our own generator."""
+    bound = 1.0 / math.sqrt(fan_in)
+    with torch.no_grad():
+        nn.init.uniform_(weight, -bound, bound, generator=generator)
+        nn.init.uniform_(bias, -bound, bound, generator=generator)
+
+
+def squashed_log_prob(u: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """log pi(tanh(u)) for u ~ N(mean, exp(log_std)), summed over the action dims.
+
+    Change of variables: log|d tanh(u)/du| = log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)),
+    exact and stable for large |u| (no 1e-6 fudge as in SB3).
+    """
+    gauss = -0.5 * ((u - mean) / log_std.exp()).square() - log_std - 0.5 * math.log(2 * math.pi)
+    log_det = 2.0 * (math.log(2.0) - u - F.softplus(-2.0 * u))
+    return (gauss - log_det).sum(-1)
+
+
+class Actor(nn.Module):
+    """MLP -> (mean, log_std) of a Gaussian in pre-tanh space; actions are tanh-squashed into [-1, 1]."""
+
+    def __init__(self, obs_dim: int, action_dim: int, cfg: SACConfig, generator: torch.Generator) -> None:
+        super().__init__()
+        dims, layers = [obs_dim, *cfg.hidden_dims], []
+        for i, o in zip(dims[:-1], dims[1:]):
+            layers += [nn.Linear(i, o), ACTIVATIONS[cfg.activation]()]
+        self.trunk = nn.Sequential(*layers)
+        self.head = nn.Linear(dims[-1], 2 * action_dim)  # mean and log_std side by side
+        self.log_std_bounds = (cfg.log_std_min, cfg.log_std_max)
+        for m in self.modules():
+            if isinstance(m, nn.Linear):
+                _init_linear_(m.weight, m.bias, m.in_features, generator)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = self.head(self.trunk(obs)).chunk(2, dim=-1)
+        return mean, log_std.clamp(*self.log_std_bounds)
+
+    def sample(self, obs: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reparameterized action in [-1, 1] and its log-probability."""
+        mean, log_std = self(obs)
+        u = mean + log_std.exp() * torch.randn(mean.shape, generator=generator, device=mean.device)
+        return torch.tanh(u), squashed_log_prob(u, mean, log_std)
+
+    def deterministic(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self(obs)[0])
+
+
+class CriticEnsemble(nn.Module):
+    """n_critics Q(s, a) MLPs evaluated as one batched module: weights (n, in, out), torch.baddbmm."""
+
+    def __init__(self, in_dim: int, cfg: SACConfig, generator: torch.Generator) -> None:
+        super().__init__()
+        n, dims = cfg.n_critics, [in_dim, *cfg.hidden_dims, 1]
+        self.weights = nn.ParameterList([nn.Parameter(torch.empty(n, i, o)) for i, o in zip(dims[:-1], dims[1:])])
+        self.biases = nn.ParameterList([nn.Parameter(torch.empty(n, 1, o)) for o in dims[1:]])
+        self.activation = ACTIVATIONS[cfg.activation]()
+        for w, b in zip(self.weights, self.biases):
+            _init_linear_(w, b, w.shape[1], generator)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """(B, obs_dim), (B, action_dim) -> Q values (n_critics, B)."""
+        x = torch.cat([obs, action], dim=-1)
+        x = x.unsqueeze(0).expand(self.weights[0].shape[0], -1, -1)  # a view, no copy per critic
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            x = torch.baddbmm(b, x, w)
+            x = self.activation(x) if i < last else x
+        return x.squeeze(-1)
+
+
+@torch.no_grad()
+def soft_update_(target: list[torch.Tensor], online: list[torch.Tensor], tau: float) -> None:
+    """Polyak averaging target <- target + tau (online - target), one fused op over all tensors."""
+    torch._foreach_lerp_(target, online, tau)
+
+
+# ----------------------------------------------------------------------------- the agent
+class SAC:
+    def __init__(self, obs_dim: int, action_dim: int, config: SACConfig, device: torch.device | str = "cpu",
+                 seed: int = 0) -> None:
+        self.cfg, self.device = config, torch.device(device)
+        self.obs_dim, self.action_dim = obs_dim, action_dim
+        # No global RNG: init_gen (CPU) draws the weights; self.generator (on the device) draws
+        # exploration noise, warm-up actions and replay indices, and is checkpointed for resumes.
+        init_gen = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator(device=self.device).manual_seed(seed)
+        self.actor = Actor(obs_dim, action_dim, config, init_gen).to(self.device)
+        self.critic = CriticEnsemble(obs_dim + action_dim, config, init_gen).to(self.device)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self._target_params, self._online_params = list(self.critic_target.parameters()), list(self.critic.parameters())
+        self._actor_params = list(self.actor.parameters())
+        self.log_alpha = torch.tensor(math.log(config.init_alpha), device=self.device, requires_grad=True)
+        self.target_entropy = float(-action_dim if config.target_entropy is None else config.target_entropy)
+        adamw = dict(lr=config.lr, weight_decay=config.weight_decay)
+        self.actor_optim = torch.optim.AdamW(self.actor.parameters(), **adamw)
+        self.critic_optim = torch.optim.AdamW(self.critic.parameters(), **adamw)
+        self.alpha_optim = torch.optim.Adam([self.log_alpha], lr=config.lr)
+        # Statistics from env batches as they arrive (never from replay samples), applied at use.
+        self.normalizer = EmpiricalNormalization(obs_dim).to(self.device) if config.obs_normalization else None
+        self.buffer = ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device)
+        self.num_transitions = 0  # env transitions added, summed over worlds
+        self.num_env_steps = 0  # batched `add` calls
+        self.num_updates = 0  # critic gradient steps
+
+    # --- acting ------------------------------------------------------------------------------
+    def normalize(self, obs: torch.Tensor) -> torch.Tensor:
+        return obs if self.normalizer is None else self.normalizer(obs)
+
+    @torch.no_grad()
+    def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
+        """Actions in [-1, 1] for a batch of raw observations (N, obs_dim)."""
+        obs = self.normalize(torch.as_tensor(obs, dtype=torch.float32, device=self.device))
+        return self.actor.deterministic(obs) if deterministic else self.actor.sample(obs, self.generator)[0]
+
+    def random_actions(self, num_envs: int) -> torch.Tensor:
+        """Uniform actions in [-1, 1] for the warm-up before `learning_starts` (SB3/SBX behaviour)."""
+        u = torch.rand((num_envs, self.action_dim), generator=self.generator, device=self.device)
+        return 2.0 * u - 1.0
+
+    # --- data ----------------------------------------------------------------------------------
+    def add(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor) -> None:
+        """One batched env step of N worlds; terminated = dones & ~time_outs, next_obs = true final obs."""
+        obs = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        if self.normalizer is not None:
+            self.normalizer.update(obs)
+        self.buffer.add(obs, action, reward, next_obs, terminated)
+        self.num_transitions += obs.shape[0]
+        self.num_env_steps += 1
+
+    def ready(self) -> bool:
+        """Enough samples to train: learning_starts transitions and at least one batch."""
+        return self.num_transitions >= self.cfg.learning_starts and len(self.buffer) >= self.cfg.batch_size
+
+    def update_due(self) -> bool:
+        """ready() and this batched env step is a multiple of train_every."""
+        return self.ready() and self.num_env_steps % self.cfg.train_every == 0
+
+    # --- losses --------------------------------------------------------------------------------
+    def critic_loss(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor,
+                    alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Soft Bellman residual on normalized obs; returns (loss, Q (n, B), target (B,))."""
+        with torch.no_grad():
+            next_action, next_log_pi = self.actor.sample(next_obs, self.generator)
+            next_q = self.critic_target(next_obs, next_action).min(dim=0).values
+            target = reward + self.cfg.gamma * (1.0 - terminated) * (next_q - alpha * next_log_pi)
+        q = self.critic(obs, action)
+        loss = 0.5 * (q - target).square().mean(dim=1).sum()  # SB3/SBX: 0.5 sum_i MSE_i
+        return loss, q, target
+
+    def actor_loss(self, obs: torch.Tensor, alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        action, log_pi = self.actor.sample(obs, self.generator)
+        q = self.critic(obs, action).min(dim=0).values
+        return (alpha * log_pi - q).mean(), log_pi
+
+    # --- training ------------------------------------------------------------------------------
+    def update(self, num_gradient_steps: int | None = None) -> dict[str, float]:
+        """num_gradient_steps (default cfg.gradient_steps) critic steps, the actor every policy_delay."""
+        if not self.ready():
+            raise RuntimeError(f"SAC.update before ready(): {self.num_transitions} transitions, "
+                               f"learning_starts={self.cfg.learning_starts}, batch_size={self.cfg.batch_size}")
+        cfg = self.cfg
+        steps, bs = (cfg.gradient_steps if num_gradient_steps is None else num_gradient_steps), cfg.batch_size
+        if steps < 1:
+            raise ValueError(f"num_gradient_steps={steps} must be >= 1")
+        # All minibatches in one draw and one normalization (stats change only in `add`).
+        b = self.buffer.sample(steps * bs, self.generator)
+        obs = self.normalize(b.obs).view(steps, bs, -1)
+        next_obs = self.normalize(b.next_obs).view(steps, bs, -1)
+        action, reward, term = b.action.view(steps, bs, -1), b.reward.view(steps, bs), b.terminated.view(steps, bs)
+        critic_stats, actor_stats = [], []  # device tensors; one sync at the end
+        for k in range(steps):
+            alpha = self.log_alpha.detach().exp()
+            loss_q, q, _ = self.critic_loss(obs[k], action[k], reward[k], next_obs[k], term[k], alpha)
+            self.critic_optim.zero_grad(set_to_none=True)
+            loss_q.backward()
+            self.critic_optim.step()
+            soft_update_(self._target_params, self._online_params, cfg.tau)
+            critic_stats.append(torch.stack([loss_q.detach(), q.detach().mean()]))
+            if self.num_updates % cfg.policy_delay == 0:
+                loss_pi, log_pi = self.actor_loss(obs[k], alpha)
+                self.actor_optim.zero_grad(set_to_none=True)
+                loss_pi.backward(inputs=self._actor_params)  # no critic weight grads
+                self.actor_optim.step()
+                # d loss / d log_alpha = entropy - target: alpha falls while entropy is above target
+                log_pi = log_pi.detach()
+                loss_alpha = -(self.log_alpha * (log_pi + self.target_entropy)).mean()
+                self.alpha_optim.zero_grad(set_to_none=True)
+                loss_alpha.backward()
+                self.alpha_optim.step()
+                actor_stats.append(torch.stack([loss_pi.detach(), loss_alpha.detach(), -log_pi.mean()]))
+            self.num_updates += 1
+        nan = torch.full((3,), float("nan"), device=self.device)
+        a_mean = torch.stack(actor_stats).mean(0) if actor_stats else nan
+        stats = torch.cat([torch.stack(critic_stats).mean(0), a_mean, self.log_alpha.detach().exp()[None]])
+        cl, qm, al, tl, ent, alpha = stats.tolist()
+        return {"critic_loss": cl, "actor_loss": al, "alpha_loss": tl, "alpha": alpha, "q_mean": qm, "entropy": ent}
+
+    # --- checkpoints -----------------------------------------------------------------------------
+    def state_dict(self, include_buffer: bool = True) -> dict:
+        """Everything a bit-identical resume needs (the buffer can be left out to save space)."""
+        state = {
+            "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+            "critic_target": self.critic_target.state_dict(), "log_alpha": self.log_alpha.detach().clone(),
+            "actor_optim": self.actor_optim.state_dict(), "critic_optim": self.critic_optim.state_dict(),
+            "alpha_optim": self.alpha_optim.state_dict(),
+            "normalizer": None if self.normalizer is None else self.normalizer.state_dict(),
+            "counters": (self.num_transitions, self.num_env_steps, self.num_updates),
+            "generator": self.generator.get_state(), "config": dataclasses.asdict(self.cfg),
+        }
+        if include_buffer:
+            state["buffer"] = self.buffer.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.critic_target.load_state_dict(state["critic_target"])
+        with torch.no_grad():
+            self.log_alpha.copy_(state["log_alpha"])
+        self.actor_optim.load_state_dict(state["actor_optim"])
+        self.critic_optim.load_state_dict(state["critic_optim"])
+        self.alpha_optim.load_state_dict(state["alpha_optim"])
+        if self.normalizer is not None:
+            self.normalizer.load_state_dict(state["normalizer"])
+        self.num_transitions, self.num_env_steps, self.num_updates = state["counters"]
+        self.generator.set_state(state["generator"])
+        if "buffer" in state:
+            self.buffer.load_state_dict(state["buffer"])
+
