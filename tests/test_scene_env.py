@@ -444,6 +444,57 @@ def _check_only_world_1_reset(env, total, obs, rew, dones, extras):
     _check_peg_in_hand(env)
 
 
+def test_forge_held_mass_and_dead_zone_randomization(peg_env):
+    """Forge (facts 9.3): held mass nominal +- 5 g per reset with inertia scaled alike and passed to
+    MuJoCo-Warp; the dead zone drawn again every 30 control steps (2 s), only in those worlds."""
+    import newton
+    import warp as wp
+
+    env = peg_env
+    saved = env.cfg
+    E = env.num_envs
+    mask = torch.tensor([True, False, True, False])
+    try:
+        env.cfg = dataclasses.replace(saved, randomize_dynamics=True)
+        env._randomize_held_mass(mask)
+        idx = env.held_idx.numpy()
+        mass = env.body_mass.double().numpy()[idx]
+        nominal = env.held_mass_nominal.double().numpy()
+        m = mask.numpy()
+        assert np.all(np.abs(mass[m] - nominal[m]) <= 0.005 + 1e-7) and np.all(mass[m] != nominal[m])
+        np.testing.assert_array_equal(mass[~m], nominal[~m])
+        inertia = env.body_inertia.double().numpy()[idx]
+        inertia_nominal = env.held_inertia_nominal.double().numpy()
+        for w in np.nonzero(m)[0]:
+            np.testing.assert_allclose(inertia[w], inertia_nominal[w] * mass[w] / nominal[w], rtol=1e-5, atol=1e-12)
+        np.testing.assert_allclose(env.body_inv_mass.double().numpy()[idx], 1.0 / mass, rtol=1e-6)
+        solver_masses = wp.to_torch(env.solver.mjw_model.body_mass).double().numpy().ravel()
+        for w in np.nonzero(m)[0]:  # the solver got the new masses
+            assert np.min(np.abs(solver_masses - mass[w])) < 1e-7
+
+        if bool((env.episode_length_buf != 0).any()):
+            env.reset()
+        env.dead_zone.fill_(0.123)
+        env.episode_length_buf[:] = torch.tensor([29, 10, 59, 0])
+        env.step(torch.zeros(E, 6))
+        dz = env.dead_zone.double().numpy()
+        for w, redrawn in enumerate([True, False, True, False]):
+            if redrawn:
+                assert not np.allclose(dz[w], 0.123)
+                ratio_w = dz[w] / np.array([5.0, 5, 5, 1, 1, 1])
+                assert 0.0 <= ratio_w[0] <= 1.0 and np.allclose(ratio_w, ratio_w[0])  # one U(0,1) per world
+            else:
+                np.testing.assert_allclose(dz[w], 0.123)
+    finally:
+        env.cfg = saved
+        env.body_mass[env.held_idx] = env.held_mass_nominal
+        env.body_inv_mass[env.held_idx] = 1.0 / env.held_mass_nominal
+        env.body_inertia[env.held_idx] = env.held_inertia_nominal
+        env.body_inv_inertia[env.held_idx] = torch.linalg.inv(env.held_inertia_nominal)
+        env.solver.notify_model_changed(newton.ModelFlags.BODY_INERTIAL_PROPERTIES)
+        env.reset()  # Factory gains and no dead zone again
+
+
 def test_blowup_resets_only_that_world(peg_env):
     env = peg_env
     total, obs, rew, dones, extras = _corrupt_and_step(env, 1.0e3)  # 1 km/s: thrown out of the hand

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.quat_ref import q_to_matrix
+from quat_ref import q_to_matrix
 from vkgrl_newton.kmp.demos import synthetic_demos
 from vkgrl_newton.kmp.pose import quat_from_euler_xyz
 from vkgrl_newton.kmp.prior import fit_prior

@@ -23,6 +23,12 @@ Reward (thesis 5.2): Factory 4 per step in the success state (held part centred 
 within 2.5 mm and seated within 1 mm, design.md); Forge adds -0.001 (|dp|/0.02 + sum |d angle|/0.097)
 (eqs. 5.11-5.18, dp = tcp - command) and -max(0, |f_smooth| - 7.5 N) (eq. 5.19).
 
+Forge family (`randomize_dynamics`, on by default for forge; facts 9.3): Kp (565, 28) scaled per
+component by [0.71, 1.41], Kd = 2 sqrt(Kp), action scales and EMA factor randomized, a force /
+torque dead zone U(0, 1) x (5 N, 1 N m) drawn at reset and again every 2 s, held-part mass +-5 g
+per reset. Not randomized here: friction (Isaac Lab's own defaults overwrite its friction events,
+facts 9.3) and the contact-penalty threshold (Forge draws U(5, 10) N; the thesis fixes 7.5 N).
+
 Episodes last 150 steps (10 s) and end by time-out only, all worlds together (Factory). A
 physics blow-up (NaN, runaway velocity, a part thrown away) in one world resets that world
 alone and is counted in `extras["log"]["/physics_resets"]`.
@@ -69,6 +75,11 @@ POS_ACTION_SCALE = 0.02  # m per step at |a| = 1
 ROT_ACTION_SCALE = 0.097  # rad per step at |a| = 1
 POS_ACTION_BOUND = 0.05  # m, target kept within this box around the target frame
 FACTORY_EMA = 0.2
+# Forge dynamics randomization (facts 9.3) beyond the gains: the force/torque dead zone is drawn
+# again every 2 s (30 control steps), and the held part's mass moves by up to 5 g at each reset
+FORGE_DEAD_ZONE = (5.0, 5.0, 5.0, 1.0, 1.0, 1.0)  # N, N m at U = 1
+FORGE_DEAD_ZONE_PERIOD_STEPS = 30
+FORGE_HELD_MASS_NOISE = 0.005  # kg
 # Null-space posture gains. Factory uses 10 / 2 sqrt(10); Isaac Lab's Newton port of Factory
 # disables the term, and so does this env by default: measured here, the null-space torque moved a
 # zero-action TCP by 5.8 mm in 5 control steps (the target follows the current pose every physics
@@ -252,6 +263,15 @@ class AssemblyEnv(VecEnv):
         # None (the default) costs nothing; a dict synchronizes the device around each stage.
         self.profile: dict[str, float] | None = None
 
+        # the held part's nominal mass and inertia (Forge randomizes the mass per reset)
+        self.body_mass = wp.to_torch(self.model.body_mass)
+        self.body_inv_mass = wp.to_torch(self.model.body_inv_mass)
+        self.body_inertia = wp.to_torch(self.model.body_inertia)
+        self.body_inv_inertia = wp.to_torch(self.model.body_inv_inertia)
+        self.held_mass_nominal = self.body_mass[self.held_idx].clone()
+        self.held_inertia_nominal = self.body_inertia[self.held_idx].clone()
+        self.dead_zone_max = torch.tensor(FORGE_DEAD_ZONE, device=tdev)
+
         self._set_family_gains(torch.ones(E, dtype=torch.bool, device=tdev))
         self.reset()
 
@@ -352,8 +372,7 @@ class AssemblyEnv(VecEnv):
             self.pos_scale[mask] = POS_ACTION_SCALE * self._forge_scale(n, 1, 0.25).expand(n, 3)
             self.rot_scale[mask] = ROT_ACTION_SCALE * self._forge_scale(n, 1, 0.29).expand(n, 3)
             self.ema[mask] = 0.025 + 0.075 * torch.rand(n, device=self.tdev, generator=self.generator)
-            self.dead_zone[mask] = torch.rand(n, 1, device=self.tdev, generator=self.generator) * torch.tensor(
-                (5.0, 5.0, 5.0, 1.0, 1.0, 1.0), device=self.tdev)
+            self.dead_zone[mask] = torch.rand(n, 1, device=self.tdev, generator=self.generator) * self.dead_zone_max
         else:
             self.pos_scale[mask] = POS_ACTION_SCALE
             self.rot_scale[mask] = ROT_ACTION_SCALE
@@ -361,6 +380,18 @@ class AssemblyEnv(VecEnv):
             self.dead_zone[mask] = 0.0
         self.kp[mask] = kp
         self.kd[mask] = 2.0 * torch.sqrt(kp)
+
+    def _randomize_held_mass(self, mask: torch.Tensor) -> None:
+        """Forge: held-part mass = nominal + U(-5, 5) g, inertia scaled with it, told to the solver."""
+        idx = self.held_idx[mask]
+        nominal = self.held_mass_nominal[mask]
+        mass = nominal + self._uniform(idx.shape[0], -FORGE_HELD_MASS_NOISE, FORGE_HELD_MASS_NOISE)
+        inertia = self.held_inertia_nominal[mask] * (mass / nominal)[:, None, None]
+        self.body_mass[idx] = mass
+        self.body_inv_mass[idx] = 1.0 / mass
+        self.body_inertia[idx] = inertia
+        self.body_inv_inertia[idx] = torch.linalg.inv(inertia)
+        self.solver.notify_model_changed(newton.ModelFlags.BODY_INERTIAL_PROPERTIES)
 
     def _forge_scale(self, n: int, k: int, noise: float) -> torch.Tensor:
         s = 1.0 + noise * torch.rand(n, k, device=self.tdev, generator=self.generator)
@@ -454,6 +485,8 @@ class AssemblyEnv(VecEnv):
         task, geo = self.task, self.geometry
         self._place_fixed_part(mask)
         self._set_family_gains(mask)
+        if self.cfg.dynamics_randomized:
+            self._randomize_held_mass(mask)
 
         # hand target above the fixed tip (facts 7.5), IK with retries from the reset posture
         tip = self.fixed_pos_w[mask] + torch.tensor((0.0, 0.0, geo.fixed_height), device=self.tdev)
@@ -629,6 +662,10 @@ class AssemblyEnv(VecEnv):
     def _finish_step(self, cmd_pos: torch.Tensor, cmd_quat: torch.Tensor):
         self.episode_length_buf += 1
         self.step_index.copy_(self.episode_length_buf.to(torch.int32))
+        if self.cfg.dynamics_randomized:  # Forge: a new dead zone every 2 s (torch.where: no host sync)
+            redraw = (self.episode_length_buf % FORGE_DEAD_ZONE_PERIOD_STEPS == 0).unsqueeze(-1)
+            fresh = torch.rand(self.num_envs, 1, device=self.tdev, generator=self.generator) * self.dead_zone_max
+            self.dead_zone.copy_(torch.where(redraw, fresh, self.dead_zone))
         held_p, _ = self.held_pose()
         d = held_p - self.fixed_pos_w
         success = (d[:, :2].norm(dim=-1) < self.geometry.success_xy) & (d[:, 2] < self.geometry.success_z)
