@@ -268,6 +268,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     last_ckpt = counters["transitions"] // args.checkpoint_every
     env_time = update_time = 0.0
     env_steps0, grad0 = counters["env_steps"], agent.num_updates
+    t_session = time.perf_counter()
     status: dict[str, float] = {}
     t_start = time.perf_counter()
     try:
@@ -337,6 +338,9 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
 
     summary = {"transitions": counters["transitions"], "env_steps": counters["env_steps"],
                "episodes": counters["episodes"], "gradient_steps": agent.num_updates, "wall_s": counters["wall_s"],
+               # whole loop (env, acting, buffer, updates) vs the env and action path alone
+               "loop_transitions_per_s": (counters["env_steps"] - env_steps0) * env.num_envs
+               / max(time.perf_counter() - t_session, 1e-9),
                "train_env_steps_per_s": (counters["env_steps"] - env_steps0) * env.num_envs / max(env_time, 1e-9),
                "grad_steps_per_s": (agent.num_updates - grad0) / update_time if update_time > 0 else float("nan"),
                "physics_resets": env.physics_resets_total}

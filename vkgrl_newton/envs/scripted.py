@@ -71,6 +71,7 @@ class ScriptedParams:
     rot_stiffness: float = 30.0  # N m/rad (Factory's)
     rot_damping: float = 10.95  # N m s/rad (Factory's)
     lateral_gain: float = 0.03  # per control step, integral gain on the part's lateral error
+    correction_speed_gate: float = 0.004  # m/s, TCP speed below which the correction integrates
     max_bias: float = 0.004  # m, bound on the integral correction
     # once the part is 1 mm into the hole: a soft lateral spring (N/m on x, y) and the integral
     # correction released (factor per control step), so a tilted part can straighten in the hole
@@ -189,7 +190,7 @@ class ScriptedInserter:
 
         # lateral correction while the part is above the fixed tip
         correcting = (self.phase >= ALIGN) & (held_p[:, 2] > tip_z)
-        still = env.tcp_twist_w[:, :3].norm(dim=-1) < 2.0 * p.settle_speed
+        still = env.tcp_twist_w[:, :3].norm(dim=-1) < p.correction_speed_gate
         self.bias[:, :2] += p.lateral_gain * lateral * (correcting & still).unsqueeze(-1)
         self.bias.clamp_(-p.max_bias, p.max_bias)
         # in the hole the walls hold the part bottom on the axis; a correction that put a tilted
