@@ -354,3 +354,16 @@ def test_presets_and_config_errors():
         make_sac_config("thesis", batch_size=0)
     with pytest.raises(RuntimeError, match="ready"):
         small_agent().update()
+
+
+def test_actor_init_std_starts_at_zero_mean_and_that_std():
+    cfg = make_sac_config("quick", hidden_dims=(32, 32), actor_init_std=0.1)
+    agent = SAC(6, 4, cfg, seed=3)
+    obs = torch.randn(512, 6, generator=torch.Generator().manual_seed(0)) * 5.0
+    mean, log_std = agent.actor(obs)
+    assert mean.abs().max() < 0.05  # ~0 whatever the observation
+    assert torch.allclose(log_std.exp(), torch.full_like(log_std, 0.1), rtol=0.05)
+    default = SAC(6, 4, make_sac_config("quick", hidden_dims=(32, 32)), seed=3)
+    assert default.actor(obs)[0].abs().max() > 0.05  # the option is what makes the difference
+    with pytest.raises(ValueError, match="actor_init_std"):
+        make_sac_config("quick", actor_init_std=100.0)

@@ -51,6 +51,10 @@ class SACConfig:
     # Hard clamp to [-20, 2] as SB3/SBX (the thesis's code); CleanRL's [-5, 2] is tighter.
     log_std_min: float = -20.0
     log_std_max: float = 2.0
+    # None: the default init (std ~1 at the start). A number: the actor starts at mean 0 with this
+    # std (pre-tanh) whatever the observation, as RSL-RL-SAC's small-sigma init: for KGRL a = 0 is
+    # the prior, and std ~1 explores ~7 mm around it against a 0.06 mm clearance (docs/benchmarks.md)
+    actor_init_std: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_dims", tuple(int(h) for h in self.hidden_dims))
@@ -63,6 +67,10 @@ class SACConfig:
             raise ValueError(f"SACConfig.hidden_dims={self.hidden_dims!r} must be non-empty positive ints")
         if not self.log_std_min < self.log_std_max:
             raise ValueError("SACConfig.log_std_min must be < log_std_max")
+        if self.actor_init_std is not None and not (
+                math.exp(self.log_std_min) <= self.actor_init_std <= math.exp(self.log_std_max)):
+            raise ValueError(f"SACConfig.actor_init_std={self.actor_init_std!r} must be None or within "
+                             f"[exp(log_std_min), exp(log_std_max)]")
         for name, lo, hi in (("tau", 0.0, 1.0), ("gamma", 0.0, 1.0)):
             if not lo < getattr(self, name) <= hi:
                 raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be in ({lo}, {hi}]")
@@ -180,6 +188,11 @@ class Actor(nn.Module):
         for m in self.modules():
             if isinstance(m, nn.Linear):
                 _init_linear_(m.weight, m.bias, m.in_features, generator)
+        if cfg.actor_init_std is not None:  # start at mean 0, std actor_init_std (see SACConfig)
+            with torch.no_grad():
+                self.head.weight.mul_(1e-3)
+                self.head.bias[:action_dim] = 0.0
+                self.head.bias[action_dim:] = math.log(cfg.actor_init_std)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mean, log_std = self.head(self.trunk(obs)).chunk(2, dim=-1)
