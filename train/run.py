@@ -45,7 +45,7 @@ from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_checkpoint  # noqa: E402
 from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
 from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, make_sac_config  # noqa: E402
-from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY  # noqa: E402
+from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
 METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
@@ -206,7 +206,7 @@ def main(argv=None) -> int:
     ckpt_path = run_dir / "checkpoints" / "last.pt"
     if not args.resume and run_dir.exists() and any(run_dir.iterdir()):
         ap.error(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another directory")
-    args.obs_dim = policy_obs_dim(args.env, not args.no_time_obs)
+    args.obs_dim = observation_dim(args.env) - (1 if args.no_time_obs else 0)
     if payload is not None:  # a foreign checkpoint stops here, before anything is built
         try:
             check_meta(payload["meta"], run_meta(args, args.obs_dim, args.sac_config), ckpt_path)
@@ -214,10 +214,6 @@ def main(argv=None) -> int:
             ap.error(f"--resume: {e}")
     return train(args, run_dir, ckpt_path, payload)
 
-
-def policy_obs_dim(family: str, time_obs: bool) -> int:
-    """Thesis eq. 5.5: s_t (1), TCP position in the target frame (3), TCP quaternion (4), Forge force (3)."""
-    return 8 + (3 if family == "forge" else 0) - (0 if time_obs else 1)
 
 
 def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
@@ -239,8 +235,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         action_path = KGRLActionPath(tables, env)
     step_fn = action_path.step if action_path is not None else env.step
     time_obs = not args.no_time_obs
-    obs_dim = env.obs_dim - (0 if time_obs else 1)
-    assert obs_dim == args.obs_dim, (obs_dim, args.obs_dim)
+    obs_dim = args.obs_dim  # observation_dim(), the same function the env uses
     sac_cfg = args.sac_config
     agent = SAC(obs_dim, args.action_dim, sac_cfg, device=env.tdev, seed=args.seed)
     meta = run_meta(args, obs_dim, sac_cfg)
@@ -270,6 +265,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     env_steps0, grad0 = counters["env_steps"], agent.num_updates
     t_session = time.perf_counter()
     status: dict[str, float] = {}
+    not_terminal = torch.zeros(env.num_envs, device=env.tdev)  # the `terminated` flags, all 0
     t_start = time.perf_counter()
     try:
         while counters["transitions"] < args.total_steps:
@@ -282,12 +278,12 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                 final = policy_observation(extras["final_observations"], time_obs)
                 x_next = torch.where(dones.unsqueeze(-1), final, x_next)
             # episodes end by time-out only: nothing is terminal; blown-up worlds' rows are dropped
-            keep = ~extras["physics_resets"]
-            terminated = torch.zeros_like(reward)
-            if bool(keep.all()):
-                agent.add(x, a, reward, x_next, terminated)
-            elif bool(keep.any()):
-                agent.add(x[keep], a[keep], reward[keep], x_next[keep], terminated[keep])
+            # (the env has counted them on the host already: no extra sync on the common path)
+            if extras["log"]["/physics_resets"] == 0:
+                agent.add(x, a, reward, x_next, not_terminal)
+            else:
+                keep = ~extras["physics_resets"]
+                agent.add(x[keep], a[keep], reward[keep], x_next[keep], not_terminal[keep])
             obs = next_obs
             counters["transitions"] += env.num_envs
             counters["env_steps"] += 1

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-__all__ = ["ScriptedPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "AgentPolicy", "evaluate",
+__all__ = ["Policy", "ScriptedPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "AgentPolicy", "evaluate",
            "policy_observation"]
 
 
@@ -33,7 +33,18 @@ def policy_observation(obs, time_obs: bool = True) -> torch.Tensor:
     return x if time_obs else x[:, 1:]
 
 
-class ScriptedPolicy:
+class Policy:
+    """Base of the evaluation policies: `reset` is called at every episode start (nothing to do
+    unless the policy keeps per-episode state), `step` drives the env one control step."""
+
+    def reset(self, env) -> None:
+        return None
+
+    def step(self, env, obs):
+        raise NotImplementedError
+
+
+class ScriptedPolicy(Policy):
     def __init__(self, seed: int = 0):
         from ..envs.scripted import ScriptedInserter
 
@@ -46,7 +57,7 @@ class ScriptedPolicy:
         return env.step_pose(*self.inserter.act(env))
 
 
-class RandomPolicy:
+class RandomPolicy(Policy):
     def __init__(self, seed: int = 0):
         self.seed = seed
         self.gen = None
@@ -60,35 +71,26 @@ class RandomPolicy:
         return env.step(a)
 
 
-class ZeroPolicy:
-    def reset(self, env) -> None:
-        pass
-
+class ZeroPolicy(Policy):
     def step(self, env, obs):
         return env.step(torch.zeros(env.num_envs, env.num_actions, device=env.tdev))
 
 
-class KMPPriorPolicy:
+class KMPPriorPolicy(Policy):
     """Follows the KMP prior: zeta = 0 at every step (the KGRL path with a zero action)."""
 
     def __init__(self, action_path):
         self.path = action_path
 
-    def reset(self, env) -> None:
-        pass
-
     def step(self, env, obs):
         return self.path.step(torch.zeros(env.num_envs, env.num_actions, device=env.tdev))
 
 
-class AgentPolicy:
+class AgentPolicy(Policy):
     """A SAC agent acting deterministically; `action_path` is the KGRLActionPath for kgrl methods."""
 
     def __init__(self, agent, action_path=None, time_obs: bool = True):
         self.agent, self.path, self.time_obs = agent, action_path, time_obs
-
-    def reset(self, env) -> None:
-        pass
 
     def step(self, env, obs):
         a = self.agent.act(policy_observation(obs, self.time_obs), deterministic=True)
@@ -148,8 +150,7 @@ def evaluate(env, policy, episodes: int, progress: bool = True, video_frames: li
 
 
 def _camera_frame(env, camera, n: int) -> np.ndarray:
-    hand = env._state_views(env.state_0)["body_q"][env.hand_idx]
-    images = camera.render(env.state_0, hand[:, :3], hand[:, 3:])
+    images = camera.render(env.state_0, *env.hand_pose())
     return np.concatenate(list(images[:n]), axis=1)
 
 

@@ -151,6 +151,12 @@ class EnvConfig:
         return self.family == "forge" if self.randomize_dynamics is None else bool(self.randomize_dynamics)
 
 
+def observation_dim(family: str, vision_latent_dim: int = 0) -> int:
+    """Thesis eq. 5.5: s_t (1), TCP position in the target frame (3), TCP quaternion (4), Forge's
+    smoothed force (3), the vision latent."""
+    return 8 + (3 if family == "forge" else 0) + vision_latent_dim
+
+
 def _vec(t: torch.Tensor, dtype):
     return wp.from_torch(t.contiguous(), dtype=dtype)
 
@@ -243,7 +249,7 @@ class AssemblyEnv(VecEnv):
         self.vision_latent = z(E, cfg.vision_latent_dim)
         self.physics_resets_total = 0
         self._physics_resets_step = 0
-        self.obs_dim = 8 + (3 if cfg.family == "forge" else 0) + cfg.vision_latent_dim
+        self.obs_dim = observation_dim(cfg.family, cfg.vision_latent_dim)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(self.obs_dim,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(cfg.action_dim,), dtype=np.float32)
 
@@ -292,12 +298,15 @@ class AssemblyEnv(VecEnv):
             }
         return self._views[key]
 
+    def hand_pose(self, state=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Hand body position and orientation (world, xyzw), (E, 3) and (E, 4): the camera mount."""
+        hand = self._state_views(state or self.state_0)["body_q"][self.hand_idx]
+        return hand[:, :3], hand[:, 3:]
+
     def tcp_pose(self, state=None) -> tuple[torch.Tensor, torch.Tensor]:
         """TCP position and orientation (world) from the hand body pose."""
-        body_q = self._state_views(state or self.state_0)["body_q"]
-        hand = body_q[self.hand_idx]
-        quat = hand[:, 3:]
-        return hand[:, :3] + quat_rotate(quat, self.tcp_offset.expand_as(hand[:, :3])), quat
+        pos, quat = self.hand_pose(state)
+        return pos + quat_rotate(quat, self.tcp_offset.expand_as(pos)), quat
 
     def held_pose(self) -> tuple[torch.Tensor, torch.Tensor]:
         held = self._state_views(self.state_0)["body_q"][self.held_idx]
@@ -695,8 +704,9 @@ class AssemblyEnv(VecEnv):
         blown = self._blown_up()
         n_blown = int(blown.sum())
         time_out = self.episode_length_buf >= self.max_episode_length
+        any_time_out = bool(time_out.any())  # one host sync, used twice below
         extras: dict = {"time_outs": time_out.clone(), "log": log, "physics_resets": blown}
-        if n_blown or bool(time_out.any()):
+        if n_blown or any_time_out:
             # the observation each world ended its episode in, before the auto-reset replaces it:
             # off-policy learners bootstrap time-outs from it (rows of blown-up worlds are garbage)
             extras["final_observations"] = self.get_observations()
@@ -707,7 +717,7 @@ class AssemblyEnv(VecEnv):
 
         log["/physics_resets"] = float(n_blown)
         log["/success"] = success.float().mean()
-        if time_out.any():
+        if any_time_out:
             extras["episode"] = self.episode_metrics(time_out)
             # per-world outcome of the finished episode, kept past the auto-reset (demo recording)
             self.last_episode_success_any = self.success_any.clone()

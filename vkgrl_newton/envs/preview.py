@@ -34,8 +34,7 @@ def render_preview(task: str, num_worlds: int, steps: int, seed: int = 0, device
     for _ in range(steps):
         env.step_pose(*policy.act(env))
     camera = TaskCamera(env.model, TASK_CAMERAS[task], num_worlds)
-    hand = env._state_views(env.state_0)["body_q"][env.hand_idx]
-    images = camera.render(env.state_0, hand[:, :3], hand[:, 3:])
+    images = camera.render(env.state_0, *env.hand_pose())
     return np.concatenate(list(images), axis=1)
 
 
