@@ -22,13 +22,8 @@ from vkgrl_newton.agents import (
     squashed_log_prob,
 )
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """These nets are tiny: one intra-op thread is faster and immune to a busy second core."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# small nets: one intra-op thread is fast and immune to a busy second core (conftest.py)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 SMALL = dict(hidden_dims=(32, 32), batch_size=16, learning_starts=32, buffer_size=512, gradient_steps=4)
@@ -367,3 +362,19 @@ def test_actor_init_std_starts_at_zero_mean_and_that_std():
     assert default.actor(obs)[0].abs().max() > 0.05  # the option is what makes the difference
     with pytest.raises(ValueError, match="actor_init_std"):
         make_sac_config("quick", actor_init_std=100.0)
+
+
+def test_warmup_actions_uniform_or_the_untrained_actor():
+    obs = torch.randn(4096, 6, generator=torch.Generator().manual_seed(1))
+    uniform = SAC(6, 4, make_sac_config("quick", hidden_dims=(32, 32)), seed=0)
+    a = uniform.explore(obs)
+    assert not uniform.ready() and a.abs().max() <= 1.0
+    # U(-1, 1): mean 0, std 1/sqrt(3) per dimension
+    np.testing.assert_allclose(a.std(0).numpy(), 1 / math.sqrt(3), atol=0.02)
+    policy = SAC(6, 4, make_sac_config("quick", hidden_dims=(32, 32), actor_init_std=0.05, warmup="policy"), seed=0)
+    a = policy.explore(obs)
+    # tanh(N(0, 0.05^2)): std = 0.05 (1 - O(0.05^2)), mean 0
+    np.testing.assert_allclose(a.std(0).numpy(), 0.05, rtol=0.06)
+    assert a.mean(0).abs().max() < 0.01
+    with pytest.raises(ValueError, match="warmup='greedy'.*uniform.*policy"):
+        make_sac_config("quick", warmup="greedy")

@@ -160,6 +160,7 @@ def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatc
     assert killed["agent"]["counters"][2] > 0  # learning started (learning_starts 8)
     config = json.loads((run_dir / "config.json").read_text())
     assert config["method"] == "sac" and config["sac"]["batch_size"] == 8
+    assert config["sac"]["warmup"] == "uniform" and config["sac"]["actor_init_std"] is None
 
     # a directory that holds a run is never reused without --resume
     with pytest.raises(SystemExit):
@@ -204,6 +205,8 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
                 "time_to_first_success_s", "mean_episode_reward", "env_steps_per_s", "physics_resets"):
         assert key in metrics
     assert metrics["episodes"] == 2 and metrics["method"] == "kgrl"
+    sac = json.loads((run_dir / "config.json").read_text())["sac"]  # KGRL's own exploration defaults
+    assert (sac["warmup"], sac["actor_init_std"], sac["log_std_max"], sac["batch_size"]) == ("policy", 0.1, -1.2, 8)
     assert 0.0 <= metrics["success_rate"] <= 1.0 and metrics["mean_contact_force"] >= 0.0
     # the KMP tables were fitted beside the demonstrations and are reused
     assert peg_demos_file.with_name(peg_demos_file.stem + ".kmp4d.npz").exists()

@@ -54,6 +54,13 @@ RUN_DEFAULTS = {
     "thesis": {"num_envs": 128, "total_steps": 1_000_000, "checkpoint_every": 50_000},
     "quick": {"num_envs": 16, "total_steps": 30_000, "checkpoint_every": 4_800},
 }
+# SAC fields a method sets on top of the preset (a --sac override still wins). KGRL's a = 0 is the
+# KMP prior: it starts there with a small-std actor, warms up with that actor instead of uniform
+# actions, and its std is capped at 0.3 (log -1.2). Uniform or std ~1 actions put the part ~7 mm
+# off the prior against a 0.06 mm clearance, and without the cap the entropy term (alpha = 1,
+# flat early Q) grows a 0.1 std to ~1 within ~100 actor updates (docs/benchmarks.md).
+KGRL_EXPLORATION = {"warmup": "policy", "actor_init_std": 0.1, "log_std_max": -1.2}
+METHOD_SAC_DEFAULTS: dict[str, dict] = {"kgrl": KGRL_EXPLORATION, "vision_kgrl": KGRL_EXPLORATION}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,7 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--preset", default=None, choices=sorted(SAC_PRESETS),
                     help="SAC hyperparameters (default: thesis on CUDA, quick on CPU)")
     ap.add_argument("--sac", metavar="FIELD=VALUE", action="append", default=[],
-                    help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256")
+                    help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256 "
+                         "(kgrl methods default to warmup=policy, actor_init_std=0.1, log_std_max=-1.2)")
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--run-dir", type=Path, default=None,
                     help="default runs/train/<task>_<method>_<env>_<D>d_seed<S>_<date-time>")
@@ -194,7 +202,8 @@ def main(argv=None) -> int:
     args.preset = args.preset or ("thesis" if args.device.startswith("cuda") else "quick")
     if args.sac_config is None:
         try:
-            args.sac_config = make_sac_config(args.preset, **args.sac_overrides)
+            args.sac_config = make_sac_config(args.preset, **{**METHOD_SAC_DEFAULTS.get(args.method, {}),
+                                                              **args.sac_overrides})
         except ValueError as e:
             ap.error(f"--sac: {e}")
     defaults = RUN_DEFAULTS[args.preset]
@@ -271,7 +280,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         while counters["transitions"] < args.total_steps:
             t0 = time.perf_counter()
             x = policy_observation(obs, time_obs)
-            a = agent.act(x) if agent.ready() else agent.random_actions(env.num_envs)
+            a = agent.explore(x)
             next_obs, reward, dones, extras = step_fn(a)
             x_next = policy_observation(next_obs, time_obs)
             if "final_observations" in extras:  # time-outs bootstrap from the state they ended in

@@ -23,6 +23,7 @@ from torch import nn
 
 Tensor = torch.Tensor
 ACTIVATIONS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh}
+WARMUPS = ("uniform", "policy")
 
 
 @dataclass(frozen=True)
@@ -31,8 +32,12 @@ class SACConfig:
     batch_size: int = 256
     lr: float = 4e-4
     # Counted in env transitions summed over worlds (one batched step of N worlds adds N), as
-    # SB3/SBX count num_timesteps; until then the caller acts with `random_actions`.
+    # SB3/SBX count num_timesteps; until then the caller acts with `warmup_actions`.
     learning_starts: int = 5_000
+    # Warm-up actions before learning_starts: "uniform" in [-1, 1] (SB3/SBX, the thesis's code),
+    # or "policy": the untrained actor's samples (with actor_init_std, a small cloud around a = 0;
+    # for KGRL that is the KMP prior, where uniform actions throw the part ~7 mm off the prior).
+    warmup: str = "uniform"
     train_every: int = 1  # batched env steps between two `update` calls
     gradient_steps: int = 512  # per `update` call
     n_critics: int = 2
@@ -58,6 +63,8 @@ class SACConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_dims", tuple(int(h) for h in self.hidden_dims))
+        if self.warmup not in WARMUPS:
+            raise ValueError(f"SACConfig.warmup={self.warmup!r}; allowed: {list(WARMUPS)}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"SACConfig.activation={self.activation!r}; allowed: {sorted(ACTIVATIONS)}")
         for name in ("buffer_size", "batch_size", "train_every", "gradient_steps", "n_critics", "policy_delay"):
@@ -276,9 +283,15 @@ class SAC:
         return self.actor.deterministic(obs) if deterministic else self.actor.sample(obs, self.generator)[0]
 
     def random_actions(self, num_envs: int) -> torch.Tensor:
-        """Uniform actions in [-1, 1] for the warm-up before `learning_starts` (SB3/SBX behaviour)."""
+        """Uniform actions in [-1, 1] (SB3/SBX warm-up)."""
         u = torch.rand((num_envs, self.action_dim), generator=self.generator, device=self.device)
         return 2.0 * u - 1.0
+
+    def explore(self, obs: torch.Tensor) -> torch.Tensor:
+        """The training loop's action: the stochastic actor once ready(), before that cfg.warmup's."""
+        if self.ready() or self.cfg.warmup == "policy":
+            return self.act(obs)
+        return self.random_actions(obs.shape[0])
 
     # --- data ----------------------------------------------------------------------------------
     def add(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor) -> None:
