@@ -14,6 +14,9 @@ that `torch.load(weights_only=True)` reads it):
 
 Writing goes to a temporary file in the same directory, fsync, then `os.replace`: a crash at
 any moment leaves either the old checkpoint or the new one, never a torn file.
+
+Other kinds of checkpoint (the VAE of `vkgrl_newton.vision.vae`) use the same two functions and
+pass `load_checkpoint` the top-level keys that their kind must hold.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import os
 import pickle
 import tempfile
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -49,10 +53,16 @@ def save_checkpoint(path, payload: dict) -> Path:
     return path
 
 
-def load_checkpoint(path, map_location="cpu") -> dict:
+def load_checkpoint(path, map_location="cpu", required: Sequence[str] = _REQUIRED,
+                    hint: str = "resume from another one or start a new run directory") -> dict:
     """Read a checkpoint; FileNotFoundError if missing, ValueError (naming the file) if it is
-    damaged, not a checkpoint of this project, or of another format version."""
+    damaged, not a checkpoint of this project, or of another format version.
+
+    `required`: the top-level keys this kind of checkpoint must hold (default: a training run's;
+    "format" is always required). `hint`: what to do about a damaged file, for the message.
+    """
     path = Path(path)
+    required = ("format", *(k for k in required if k != "format"))
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
     try:
@@ -60,10 +70,11 @@ def load_checkpoint(path, map_location="cpu") -> dict:
     except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as e:
         first = (str(e).strip().splitlines() or [""])[0][:200]
         raise ValueError(f"checkpoint {path} is damaged or not a checkpoint ({type(e).__name__}: {first}); "
-                         "resume from another one or start a new run directory") from None
-    if not isinstance(payload, dict) or any(k not in payload for k in _REQUIRED):
-        missing = [k for k in _REQUIRED if not isinstance(payload, dict) or k not in payload]
-        raise ValueError(f"checkpoint {path} is not a vkgrl-newton training checkpoint (missing {missing})")
+                         f"{hint}") from None
+    if not isinstance(payload, dict) or any(k not in payload for k in required):
+        missing = [k for k in required if not isinstance(payload, dict) or k not in payload]
+        raise ValueError(f"checkpoint {path} is not a vkgrl-newton checkpoint of the expected kind "
+                         f"(missing {missing})")
     if payload["format"] != CHECKPOINT_FORMAT:
         raise ValueError(f"checkpoint {path} has format {payload['format']}, this code reads {CHECKPOINT_FORMAT}")
     return payload

@@ -1,0 +1,428 @@
+"""Tests of the vision package (vkgrl_newton.vision) on the CPU, each against a reference written
+independently of the code under test: torch.distributions and a Monte-Carlo estimate for the KL,
+eq. 4.48 by hand, exact flips and scipy's Gaussian filter for the augmentations, binomial bounds
+for their probabilities, sklearn's Ridge for the probe."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from vkgrl_newton.agents.checkpoint import load_checkpoint, save_checkpoint
+from vkgrl_newton.vision import (
+    AugmentConfig,
+    DenoisingVAE,
+    FrozenEncoder,
+    ImageSet,
+    ImageSetWriter,
+    VAEConfig,
+    apply_params,
+    augment,
+    draw_params,
+    gaussian_blur,
+    gaussian_kernel1d,
+    kl_divergence,
+    linear_probe,
+    load_vae,
+    save_vae,
+    to_float_images,
+    vae_loss,
+)
+
+SMALL = dict(channels=(8, 16, 16, 32, 32), groups=8)  # widths for fast tests, divisible by 8
+
+
+# small nets: one intra-op thread is fast and immune to a busy second core (conftest.py)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+
+def gen(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+# ----------------------------------------------------------------------------- config and network
+@pytest.mark.parametrize("resolution,channels", [(32, SMALL["channels"]), (64, SMALL["channels"]),
+                                                 (256, VAEConfig().channels)])
+def test_shapes(resolution, channels):
+    vae = DenoisingVAE(VAEConfig(resolution=resolution, channels=channels), gen())
+    x = torch.rand((2, 3, resolution, resolution), generator=gen(1))
+    mu, logvar = vae.encode(x)
+    assert mu.shape == logvar.shape == (2, 16)
+    z = vae.reparameterize(mu, logvar, gen(2))
+    assert z.shape == (2, 16)
+    recon = vae.decode(z)
+    assert recon.shape == (2, 3, resolution, resolution)
+    assert recon.min() > 0 and recon.max() < 1  # sigmoid
+    recon2, mu2, logvar2 = vae(x, gen(2))
+    assert torch.equal(recon2, recon) and torch.equal(mu2, mu) and torch.equal(logvar2, logvar)
+    with pytest.raises(ValueError, match=f"3, {resolution}, {resolution}"):
+        vae.encode(torch.rand(2, 3, resolution // 2, resolution // 2))
+
+
+def test_architecture_follows_the_thesis():
+    vae = DenoisingVAE(VAEConfig(resolution=64, **SMALL))
+    convs = [m for m in vae.encoder if isinstance(m, torch.nn.Conv2d)]
+    deconvs = [m for m in vae.decoder if isinstance(m, torch.nn.ConvTranspose2d)]
+    assert len(convs) == len(deconvs) == 5
+    for m in convs + deconvs:
+        assert m.kernel_size == (4, 4) and m.stride == (2, 2) and m.padding == (1, 1)
+    # conv -> LeakyReLU -> GroupNorm(8) in the encoder; the decoder's last layer is a sigmoid
+    kinds = [type(m).__name__ for m in vae.encoder]
+    assert kinds[:3] == ["Conv2d", "LeakyReLU", "GroupNorm"] and kinds[-1] == "Flatten"
+    assert all(m.num_groups == 8 for m in vae.modules() if isinstance(m, torch.nn.GroupNorm))
+    assert isinstance(vae.decoder[-1], torch.nn.Sigmoid)
+    # weights are drawn from the given generator only
+    cfg = VAEConfig(resolution=32, **SMALL)
+    a, b = DenoisingVAE(cfg, gen(5)), DenoisingVAE(cfg, gen(5))
+    assert all(torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))
+
+
+@pytest.mark.parametrize("kwargs,field", [
+    (dict(resolution=48), "resolution"), (dict(resolution=1024), "resolution"), (dict(resolution=16), "resolution"),
+    (dict(latent_dim=0), "latent_dim"), (dict(channels=(8, 8, 8, 8)), "channels"),
+    (dict(channels=(8, 8, 12, 8, 8)), "channels"), (dict(leaky_slope=1.5), "leaky_slope"), (dict(groups=0), "groups"),
+])
+def test_config_errors_name_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=f"VAEConfig.{field}"):
+        VAEConfig(**kwargs)
+
+
+def test_to_float_images():
+    u8 = torch.randint(0, 256, (2, 5, 7, 3), dtype=torch.uint8, generator=gen())
+    x = to_float_images(u8)
+    assert x.shape == (2, 3, 5, 7) and x.dtype == torch.float32 and x.is_contiguous()
+    assert torch.equal(x[1, 2, 4, 6], u8[1, 4, 6, 2].float() / 255)
+    ro = u8.numpy().copy()
+    ro.flags.writeable = False  # as a read-only memmap
+    assert torch.equal(to_float_images(ro), x)
+    with pytest.raises(ValueError, match="uint8"):
+        to_float_images(u8.float())
+
+
+# ----------------------------------------------------------------------------- loss
+def test_kl_against_torch_distributions_and_monte_carlo():
+    g = gen(3)
+    mu = torch.randn((5, 4), generator=g, dtype=torch.float64)
+    logvar = torch.randn((5, 4), generator=g, dtype=torch.float64)
+    sigma = (0.5 * logvar).exp()
+    ref = torch.distributions.kl_divergence(torch.distributions.Normal(mu, sigma),
+                                            torch.distributions.Normal(0.0, 1.0)).sum(-1)
+    kl = kl_divergence(mu, logvar)
+    assert kl.shape == (5,)
+    torch.testing.assert_close(kl, ref, rtol=1e-12, atol=1e-12)
+    # Monte Carlo: E_q[log q(z) - log p(z)], within 5 standard errors
+    m = 200_000
+    z = mu + sigma * torch.randn((m, 5, 4), generator=g, dtype=torch.float64)
+    log_q = (-0.5 * ((z - mu) / sigma) ** 2 - sigma.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+    log_p = (-0.5 * z**2 - 0.5 * math.log(2 * math.pi)).sum(-1)
+    d = log_q - log_p  # (m, 5)
+    se = d.std(0) / math.sqrt(m)
+    assert ((d.mean(0) - kl).abs() < 5 * se).all(), (d.mean(0), kl, se)
+
+
+def test_loss_is_eq_4_48_by_hand():
+    g = gen(4)
+    recon, target = torch.rand((2, 3, 2, 2), generator=g), torch.rand((2, 3, 2, 2), generator=g)
+    mu, logvar = torch.randn((2, 3), generator=g), torch.randn((2, 3), generator=g)
+    terms = []
+    for t in range(2):
+        sq = sum((float(recon[t].flatten()[i]) - float(target[t].flatten()[i])) ** 2 for i in range(12))
+        kl = 0.5 * sum(float(mu[t, j]) ** 2 + math.exp(float(logvar[t, j])) - float(logvar[t, j]) - 1 for j in range(3))
+        terms.append((sq, kl))
+    out = vae_loss(recon, target, mu, logvar)
+    assert math.isclose(out["loss"].item(), sum(s + k for s, k in terms) / 2, rel_tol=1e-5)
+    assert math.isclose(out["recon"].item(), sum(s for s, _ in terms) / 2, rel_tol=1e-5)
+    assert math.isclose(out["kl"].item(), sum(k for _, k in terms) / 2, rel_tol=1e-5)
+    assert math.isclose(out["mse"].item(), sum(s for s, _ in terms) / 24, rel_tol=1e-5)
+    assert out["loss"].ndim == 0
+
+
+# ----------------------------------------------------------------------------- augmentations
+def binomial_ok(count: int, n: int, p: float, k: float = 5.0) -> bool:
+    return abs(count - n * p) <= k * math.sqrt(n * p * (1 - p))
+
+
+def test_augment_leaves_input_alone_and_is_seeded():
+    x = torch.rand((64, 3, 16, 16), generator=gen())
+    before = x.clone()
+    a = augment(x, gen(7))
+    assert torch.equal(x, before)
+    assert a.data_ptr() != x.data_ptr() and a.shape == x.shape
+    assert a.min() >= 0 and a.max() <= 1
+    assert torch.equal(a, augment(x, gen(7))) and not torch.equal(a, augment(x, gen(8)))
+    # augment = draw_params + apply_params on the same stream
+    assert torch.equal(a, apply_params(x, draw_params(64, gen(7))))
+    # nothing drawn -> a copy
+    off = AugmentConfig(flip_p=0, brightness_p=0, blur_p=0)
+    c = augment(x, gen(7), off)
+    assert torch.equal(c, x) and c.data_ptr() != x.data_ptr()
+
+
+def test_flip_probability_and_exactness():
+    n = 2000
+    x = torch.rand((n, 3, 4, 6), generator=gen(1))
+    out = augment(x, gen(2), AugmentConfig(brightness_p=0, blur_p=0))
+    flipped = (out == x.flip(-1)).flatten(1).all(1)
+    same = (out == x).flatten(1).all(1)
+    assert bool((flipped ^ same).all())  # each image is exactly one of the two
+    assert binomial_ok(int(flipped.sum()), n, 0.5), int(flipped.sum())
+
+
+def test_brightness_shift():
+    n = 2000
+    x = 0.1 + 0.8 * torch.rand((n, 3, 4, 4), generator=gen(1))  # no clamping for |b| <= 15/255
+    out = augment(x, gen(3), AugmentConfig(flip_p=0, blur_p=0))
+    diff = (out - x).flatten(1)
+    const = diff.mean(1)
+    assert (diff.max(1).values - diff.min(1).values).max() < 1e-6  # one constant per image
+    assert const.abs().max() <= 15 / 255 + 1e-6
+    changed = const.abs() > 1e-7
+    assert binomial_ok(int(changed.sum()), n, 0.3), int(changed.sum())
+    assert const.min() < -12 / 255 and const.max() > 12 / 255  # spread over U(-15, 15)
+    # clamped to [0, 1]
+    ones = torch.ones((200, 3, 4, 4))
+    bright = augment(ones, gen(4), AugmentConfig(flip_p=0, blur_p=0, brightness_p=1.0))
+    params = draw_params(200, gen(4), AugmentConfig(flip_p=0, blur_p=0, brightness_p=1.0))
+    assert bright.max() <= 1.0
+    torch.testing.assert_close(bright[:, 0, 0, 0], (1 + params.shift).clamp(max=1.0))
+
+
+def test_blur_kernel_and_identity():
+    sig = torch.tensor([0.0, 1e-3, 0.05, 0.3, 0.7])
+    k = gaussian_kernel1d(sig, 5)
+    torch.testing.assert_close(k.sum(-1), torch.ones(5))
+    assert torch.equal(k, k.flip(-1))
+    assert torch.equal(k[0], torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0]))
+    x = torch.rand((3, 3, 9, 11), generator=gen(5))
+    assert torch.equal(gaussian_blur(x, torch.zeros(3)), x)  # sigma -> 0: identity
+    assert torch.equal(gaussian_blur(x, torch.full((3,), 1e-4)), x)
+    c = torch.full((2, 3, 8, 8), 0.37)
+    b = gaussian_blur(c, torch.tensor([0.4, 0.7]))
+    torch.testing.assert_close(b, c)
+    assert abs(b.mean().item() - 0.37) < 1e-6
+
+
+def test_blur_matches_scipy_and_its_probability():
+    ndimage = pytest.importorskip("scipy.ndimage")
+    x = torch.rand((4, 3, 10, 12), generator=gen(6), dtype=torch.float64)
+    sigma = torch.tensor([0.2, 0.45, 0.6, 0.7], dtype=torch.float64)
+    out = gaussian_blur(x, sigma)
+    for i in range(4):
+        for c in range(3):
+            # scipy "mirror" = torch "reflect" (d c b | a b c d | c b a); radius 2 = our 5 taps
+            ref = ndimage.gaussian_filter(x[i, c].numpy(), float(sigma[i]), radius=2, mode="mirror")
+            np.testing.assert_allclose(out[i, c].numpy(), ref, rtol=1e-10, atol=1e-12)
+    n = 2000
+    cfg = AugmentConfig(flip_p=0, brightness_p=0, blur_sigma_range=(0.5, 0.7))
+    img = torch.rand((n, 3, 6, 6), generator=gen(7))
+    a = augment(img, gen(8), cfg)
+    changed = (a != img).flatten(1).any(1)
+    assert binomial_ok(int(changed.sum()), n, 0.3), int(changed.sum())
+    p = draw_params(n, gen(8), cfg)
+    assert torch.equal(changed, p.blur)
+    assert p.sigma.min() >= 0.5 and p.sigma.max() <= 0.7
+    idx = p.blur.nonzero().squeeze(1)[:5]
+    torch.testing.assert_close(a[idx], gaussian_blur(img[idx], p.sigma[idx]))
+
+
+# ----------------------------------------------------------------------------- training
+def squares(n: int, g: torch.Generator, r: int = 32, side: int = 8) -> torch.Tensor:
+    """Black images with one coloured square at a random position: (n, 3, r, r) in [0, 1]."""
+    x = torch.zeros((n, 3, r, r))
+    pos = torch.randint(0, r - side + 1, (n, 2), generator=g)
+    col = 0.3 + 0.7 * torch.rand((n, 3), generator=g)
+    for i in range(n):  # test data only
+        x[i, :, pos[i, 0]: pos[i, 0] + side, pos[i, 1]: pos[i, 1] + side] = col[i, :, None, None]
+    return x
+
+
+def test_tiny_training_run_lowers_validation_loss():
+    g = gen(10)
+    train, val = squares(64, g), squares(32, g)
+    vae = DenoisingVAE(VAEConfig(resolution=32, **SMALL), gen(11))
+    # lr 3e-3 rather than the thesis's 1e-3: 40 steps at 1e-3 only take ~15 % off the loss
+    opt = torch.optim.Adam(vae.parameters(), lr=3e-3)
+
+    def val_loss() -> float:
+        with torch.no_grad():
+            recon, mu, logvar = vae(val, gen(99))
+            return vae_loss(recon, val, mu, logvar)["loss"].item()
+
+    before = val_loss()
+    for _ in range(40):
+        idx = torch.randint(0, 64, (32,), generator=g)
+        clean = train[idx]
+        recon, mu, logvar = vae(augment(clean, g), g)  # encoder: augmented, decoder target: clean
+        loss = vae_loss(recon, clean, mu, logvar)["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    after = val_loss()
+    assert math.isfinite(after) and after < 0.6 * before, (before, after)  # ~0.46 seen
+
+
+# ----------------------------------------------------------------------------- frozen encoder
+def test_frozen_encoder():
+    vae = DenoisingVAE(VAEConfig(resolution=32, **SMALL), gen(12))
+    enc = FrozenEncoder(vae)
+    params = list(enc.parameters())
+    assert params and not any(p.requires_grad for p in params)
+    enc.train()  # a policy switching to training mode does not move it
+    assert not enc.training
+    x = torch.rand((4, 3, 32, 32), generator=gen(13))
+    z = enc(x)
+    assert z.shape == (4, 16) and not z.requires_grad
+    assert torch.equal(z, vae.encode(x)[0])  # the mean, same ops on the same weights
+    u8 = torch.randint(0, 256, (4, 32, 32, 3), dtype=torch.uint8, generator=gen(14))
+    assert torch.equal(enc(u8), vae.encode(to_float_images(u8))[0])
+    assert torch.equal(enc(u8.numpy()), enc(u8))
+    snapshot = {k: v.clone() for k, v in enc.state_dict().items()}
+    head = torch.nn.Linear(16, 2)
+    opt = torch.optim.Adam(head.parameters(), lr=1e-2)
+    head(enc(x)).square().sum().backward()
+    opt.step()
+    assert head.weight.grad is not None
+    assert all(torch.equal(v, snapshot[k]) for k, v in enc.state_dict().items())
+    # a copy: training the VAE further leaves it alone
+    with torch.no_grad():
+        vae.fc_mu.weight.add_(1.0)
+    assert torch.equal(enc.fc_mu.weight, snapshot["fc_mu.weight"])
+    with pytest.raises(ValueError, match="expected images of 32 x 32.*got 64 x 64"):
+        enc(torch.rand(1, 3, 64, 64))
+    with pytest.raises(ValueError, match="expected images of 32 x 32.*got 16 x 16"):
+        enc(torch.zeros((1, 16, 16, 3), dtype=torch.uint8))
+
+
+# ----------------------------------------------------------------------------- image set
+def write_set(out_dir, episodes: int = 10, frames: int = 6, r: int = 8, val_fraction: float = 0.2):
+    g = np.random.default_rng(0)
+    n = episodes * frames
+    images = g.integers(0, 256, (n, r, r, 3), dtype=np.uint8)
+    state = g.normal(size=(n, 4)).astype(np.float32)
+    episode = np.repeat(np.arange(100, 100 + episodes), frames)
+    w = ImageSetWriter(out_dir, n, r, "PegInsert", val_fraction=val_fraction, seed=3,
+                       meta_extra={"source": "test: random pixels"})
+    for sl in (slice(0, 7), slice(7, 40), slice(40, n)):  # uneven chunks, tensors and arrays
+        w.add(torch.from_numpy(images[sl]) if sl.start == 7 else images[sl], state[sl], episode[sl])
+    assert w.close() == out_dir
+    return images, state, episode
+
+
+def test_image_set_round_trip_and_split(tmp_path):
+    d = tmp_path / "set"
+    images, state, episode = write_set(d)
+    ds = ImageSet(d, resolution=8, task="PegInsert")
+    assert isinstance(ds.images, np.memmap) and len(ds) == 60
+    assert np.array_equal(ds.images, images) and np.array_equal(ds.state, state)
+    assert np.array_equal(ds.episode, episode) and ds.episode.dtype == np.int32
+    assert ds.meta["source"] == "test: random pixels" and ds.meta["val_fraction"] == 0.2
+    assert ds.meta["count"] == 60 and ds.meta["resolution"] == 8 and ds.meta["task"] == "PegInsert"
+    # by episode: 2 of 10 episodes, all of their frames, none of the others
+    assert np.array_equal(np.sort(np.concatenate([ds.train_idx, ds.val_idx])), np.arange(60))
+    val_eps, train_eps = set(episode[ds.val_idx]), set(episode[ds.train_idx])
+    assert len(val_eps) == 2 and not val_eps & train_eps and len(ds.val_idx) == 12
+    assert json.loads((d / "meta.json").read_text())["num_val_episodes"] == 2
+    assert sorted(p.name for p in d.iterdir()) == sorted(["images.npy", "state.npy", "episode.npy", "split.npy",
+                                                          "meta.json"])
+    with pytest.raises(ValueError, match="resolution 8, requested 64"):
+        ImageSet(d, resolution=64)
+    with pytest.raises(ValueError, match="GearMesh"):
+        ImageSet(d, task="GearMesh")
+
+
+def test_image_set_refuses_and_names_what_is_missing(tmp_path):
+    d = tmp_path / "set"
+    write_set(d)
+    with pytest.raises(FileExistsError, match="not empty"):
+        ImageSetWriter(d, 4, 8, "PegInsert")
+    (d / "split.npy").unlink()
+    with pytest.raises(FileNotFoundError, match="split.npy"):
+        ImageSet(d)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        ImageSet(tmp_path / "nowhere")
+    # an interrupted writer leaves no meta.json, and the reader says so
+    u = tmp_path / "unfinished"
+    with pytest.raises(KeyboardInterrupt):
+        with ImageSetWriter(u, 4, 8, "PegInsert", val_fraction=0.5) as w:
+            w.add(np.zeros((2, 8, 8, 3), np.uint8), np.zeros((2, 4)), np.array([0, 1]))
+            raise KeyboardInterrupt
+    with pytest.raises(FileNotFoundError, match="meta.json.*did not finish"):
+        ImageSet(u)
+    w = ImageSetWriter(tmp_path / "short", 4, 8, "PegInsert")
+    w.add(np.zeros((2, 8, 8, 3), np.uint8), np.zeros((2, 4)), np.array([0, 1]))
+    with pytest.raises(ValueError, match="2 of num_images=4"):
+        w.close()
+    with pytest.raises(ValueError, match="uint8"):
+        w.add(np.zeros((2, 8, 8, 3), np.float32), np.zeros((2, 4)), np.array([0, 1]))
+
+
+# ----------------------------------------------------------------------------- probe
+def test_linear_probe():
+    g = np.random.default_rng(1)
+    zt, zv = g.normal(size=(2000, 8)), g.normal(size=(1000, 8))
+    a, b = g.normal(size=(8, 3)), g.normal(size=3)
+    out = linear_probe(zt, zt @ a + b, torch.from_numpy(zv), zv @ a + b)
+    assert out["r2"].shape == (3,) and (out["r2"] > 0.9999).all()
+    # against sklearn's Ridge: alpha = n * ridge for our mean-squared-error penalty
+    linear_model = pytest.importorskip("sklearn.linear_model")
+    yt = zt @ a + b + g.normal(size=(2000, 3))
+    out = linear_probe(zt, yt, zv, zv @ a + b, ridge=0.5)
+    ref = linear_model.Ridge(alpha=0.5 * 2000).fit(zt, yt)
+    np.testing.assert_allclose(out["weight"], ref.coef_.T, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(out["bias"], ref.intercept_, rtol=1e-8, atol=1e-10)
+    # an independent target: nothing to read
+    r = linear_probe(zt, g.normal(size=2000), zv, g.normal(size=1000))["r2"]
+    assert r.shape == (1,) and abs(r[0]) < 0.05
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def test_vae_checkpoint_round_trip_and_errors(tmp_path):
+    cfg = VAEConfig(resolution=32, **SMALL)
+    vae = DenoisingVAE(cfg, gen(20))
+    opt = torch.optim.Adam(vae.parameters(), lr=1e-3)
+    x = torch.rand((2, 3, 32, 32), generator=gen(21))
+    recon, mu, logvar = vae(x, gen(22))
+    vae_loss(recon, x, mu, logvar)["loss"].backward()  # an optimizer with state
+    opt.step()
+    path = tmp_path / "vae" / "PegInsert.pt"
+    save_vae(path, vae, cfg, {"task": "PegInsert", "images": "runs/img"}, optimizer=opt, epoch=3)
+    loaded, payload = load_vae(path, expect={"task": "PegInsert", "resolution": 32, "latent_dim": 16})
+    assert loaded.config == cfg and not loaded.training and payload["epoch"] == 3
+    assert payload["meta"] == {"task": "PegInsert", "images": "runs/img", "resolution": 32, "latent_dim": 16}
+    assert all(torch.equal(v, loaded.state_dict()[k]) for k, v in vae.state_dict().items())
+    opt2 = torch.optim.Adam(loaded.parameters(), lr=1e-3)
+    opt2.load_state_dict(payload["optimizer"])
+    # a VAE checkpoint is not a training run's, and the default still asks for a run's keys
+    with pytest.raises(ValueError, match="missing"):
+        load_checkpoint(path)
+
+    with pytest.raises(ValueError, match="resolution mismatch, expected 64, checkpoint has 32"):
+        load_vae(path, expect={"resolution": 64})
+    with pytest.raises(ValueError, match="task mismatch, expected 'GearMesh', checkpoint has 'PegInsert'"):
+        load_vae(path, expect={"task": "GearMesh"})
+    with pytest.raises(ValueError, match="does not store camera"):
+        load_vae(path, expect={"camera": "hand"})
+    with pytest.raises(FileNotFoundError, match="train/train_vae.py --task NutThread"):
+        load_vae(tmp_path / "missing.pt", expect={"task": "NutThread"})
+    bad = tmp_path / "garbage.pt"
+    bad.write_bytes(bytes(range(256)) * 8)
+    with pytest.raises(ValueError, match="damaged"):
+        load_vae(bad)
+    torn = tmp_path / "torn.pt"
+    torn.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(ValueError, match="damaged"):
+        load_vae(torn)
+    other = save_checkpoint(tmp_path / "agent.pt", {"meta": {}, "counters": {}, "agent": {}, "rng": {}})
+    with pytest.raises(ValueError, match="missing"):
+        load_vae(other)
+    with pytest.raises(ValueError, match="config"):
+        save_vae(tmp_path / "x.pt", vae, VAEConfig(resolution=64, **SMALL), {})
+    with pytest.raises(ValueError, match="meta"):  # would save, then fail to load with weights_only
+        save_vae(tmp_path / "x.pt", vae, cfg, {"images": tmp_path})
+    with pytest.raises(ValueError, match="resolution"):
+        save_vae(tmp_path / "x.pt", vae, cfg, {"resolution": 64})
+    assert not (tmp_path / "x.pt").exists()
