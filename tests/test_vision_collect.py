@@ -1,0 +1,76 @@
+"""The image-set collector (vkgrl_newton/vision/collect.py) on the shared 4-world PegInsert env:
+the privileged state against a float64 recomputation, and a short collection end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from quat_ref import q_to_matrix
+
+
+def test_relative_target_state_matches_float64(peg_env):
+    from vkgrl_newton.vision.collect import relative_target_state
+
+    env = peg_env
+    env.reset()
+    got = relative_target_state(env).double().numpy()
+    hand = env._state_views(env.state_0)["body_q"][env.hand_idx].double().numpy()
+    fixed = env.fixed_pos_w.double().numpy()
+    for i in range(env.num_envs):
+        rot = q_to_matrix(hand[i, 3:])
+        tcp = hand[i, :3] + rot @ env.tcp_offset.double().numpy().reshape(3)
+        tip = fixed[i] + np.array([0.0, 0.0, env.geometry.fixed_height])
+        np.testing.assert_allclose(got[i, :3], rot.T @ (tip - tcp), atol=2e-6)
+        d_yaw = float(env.fixed_yaw[i]) - math.atan2(rot[1, 0], rot[0, 0])
+        d_yaw = math.atan2(math.sin(d_yaw), math.cos(d_yaw))
+        assert abs(math.remainder(got[i, 3] - d_yaw, 2 * math.pi)) < 1e-5
+    # after a reset the hand is above the target (Table 5.2: within a few cm, tip below the TCP)
+    assert np.all(np.abs(got[:, :2]) < 0.1) and np.all(got[:, 2] > 0.0)  # TCP z points down
+
+
+def test_is_scripted_round_schedule():
+    from vkgrl_newton.vision.collect import is_scripted_round
+
+    for f in (0.0, 0.25, 0.5, 1.0):
+        kinds = [is_scripted_round(r, f) for r in range(40)]
+        assert sum(kinds) == round(40 * f)
+        assert all(abs(sum(kinds[:k]) - k * f) <= 1 for k in range(41))
+
+
+def test_collect_images_end_to_end(peg_env, tmp_path):
+    from vkgrl_newton.vision import ImageSet
+    from vkgrl_newton.vision.collect import CollectConfig, collect_images
+
+    cfg = CollectConfig(num_images=30, resolution=32, frame_stride=4, episode_steps=8, val_fraction=0.25,
+                        scripted_fraction=0.5)
+    out = collect_images(cfg, tmp_path / "set", progress=False, log=lambda *_: None, env=peg_env)
+    s = ImageSet(out, resolution=32, task="PegInsert")
+    assert len(s) == 30 and s.images.shape == (30, 32, 32, 3) and s.images.dtype == np.uint8
+    # 4 worlds, 2 frames per round (steps 0 and 4 of 8): rounds 0..3, the last one partial
+    np.testing.assert_array_equal(s.episode[:8], [0, 1, 2, 3, 0, 1, 2, 3])
+    assert s.episode.max() == 4 * 3 + 3
+    assert set(s.train_idx.tolist()).isdisjoint(s.val_idx.tolist())
+    train_eps, val_eps = set(s.episode[s.train_idx].tolist()), set(s.episode[s.val_idx].tolist())
+    assert train_eps.isdisjoint(val_eps) and val_eps  # split by episode, never by frame
+    assert np.isfinite(s.state).all() and np.all(np.abs(s.state[:, :2]) < 0.1)
+    imgs = s.images[:].astype(np.float64)
+    assert imgs.std() > 5.0  # a scene, not a blank frame
+    assert np.abs(imgs[0] - imgs[8]).mean() > 0.5  # worlds moved between rounds
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["action_dim"] == 6 and meta["num_envs"] == 4 and meta["camera"]["width"] == 32
+    with pytest.raises(FileExistsError, match="not empty"):
+        collect_images(cfg, out, progress=False, env=peg_env)
+
+
+def test_collect_config_errors():
+    from vkgrl_newton.vision.collect import CollectConfig
+
+    with pytest.raises(ValueError, match="scripted_fraction"):
+        CollectConfig(scripted_fraction=1.5)
+    with pytest.raises(ValueError, match="frame_stride"):
+        CollectConfig(frame_stride=0)
+    with pytest.raises(ValueError, match="val_fraction"):
+        CollectConfig(val_fraction=1.0)

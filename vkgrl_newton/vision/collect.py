@@ -1,0 +1,158 @@
+"""The image set a task's VAE learns from: task-camera images of the states a learning policy visits.
+
+A policy in training sees the parts from far (random exploration, up to the 5 cm action bound)
+and from close (near the hole, in contact), so the set mixes two kinds of episode round (all
+worlds alike, on a fixed schedule with a `scripted_fraction` of scripted rounds):
+
+- the scripted demonstrator (`envs.scripted`) with injected noise: its pose command is offset by
+  a per-episode N(0, noise_offset) on x, y and a per-step N(0, noise_step) on x, y, z, so that
+  the set holds near-misses, contacts on the rim and insertions, not only perfect ones;
+- uniform random actions through the SAC action path (`env.step`), Factory's delta-pose mapping.
+
+Every `frame_stride` control steps all worlds render their hand camera (`sim.camera.TaskCamera`,
+Table 5.6 pose, `resolution` x `resolution`) and the privileged state is stored beside the image:
+the fixed part's tip relative to the TCP, in the TCP frame (x, y, z, m), and the relative yaw
+(fixed yaw - TCP yaw, wrapped to [-pi, pi)). The VAE never sees it; the linear probe checks that
+the latent carries it (issue: R^2 >= 0.8 on x and y).
+
+Episodes are numbered episode_round * num_envs + world, so the writer's train/validation split is
+by (world, episode): frames of one trajectory never straddle the split.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from ..kmp.pose import euler_xyz_from_quat, quat_conjugate, quat_rotate
+from .dataset import ImageSetWriter
+
+__all__ = ["CollectConfig", "collect_images", "default_image_dir", "relative_target_state"]
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    task: str = "PegInsert"
+    num_images: int = 4_096
+    resolution: int = 64  # the quick preset's; the thesis's is 256 (Table 5.6)
+    num_envs: int = 16
+    family: str = "factory"
+    action_dim: int = 4
+    scripted_fraction: float = 0.5  # of episodes; the rest act uniformly at random
+    frame_stride: int = 3  # control steps between two stored frames of a world
+    episode_steps: int | None = None  # control steps per episode round (None: the whole episode)
+    noise_offset: float = 0.003  # m, per-episode x, y offset of the demonstrator's command (std)
+    noise_step: float = 0.001  # m, per-step command noise (std)
+    val_fraction: float = 0.1
+    seed: int = 0
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        for name in ("num_images", "resolution", "num_envs", "frame_stride", "episode_steps"):
+            v = getattr(self, name)
+            if name == "episode_steps" and v is None:
+                continue
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise ValueError(f"CollectConfig.{name}={v!r}; allowed: an integer >= 1")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ValueError(f"CollectConfig.val_fraction={self.val_fraction!r}; allowed: [0, 1)")
+        if not 0.0 <= self.scripted_fraction <= 1.0:
+            raise ValueError(f"CollectConfig.scripted_fraction={self.scripted_fraction!r}; allowed: [0, 1]")
+        for name in ("noise_offset", "noise_step"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"CollectConfig.{name}={getattr(self, name)!r}; allowed: >= 0 (m)")
+
+
+def relative_target_state(env) -> torch.Tensor:
+    """(E, 4): the fixed tip relative to the TCP in the TCP frame (x, y, z, m) and the relative yaw."""
+    tcp_p, tcp_q = env.tcp_pose()
+    tip = env.fixed_pos_w.clone()
+    tip[:, 2] += env.geometry.fixed_height
+    rel = quat_rotate(quat_conjugate(tcp_q), tip - tcp_p)
+    _, _, tcp_yaw = euler_xyz_from_quat(tcp_q)
+    d_yaw = env.fixed_yaw - tcp_yaw
+    d_yaw = torch.atan2(torch.sin(d_yaw), torch.cos(d_yaw))
+    return torch.cat((rel, d_yaw.unsqueeze(-1)), dim=-1)
+
+
+def is_scripted_round(episode_round: int, scripted_fraction: float) -> bool:
+    """A fixed schedule with exactly that fraction of scripted rounds over any prefix (+-1)."""
+    return math.floor((episode_round + 1) * scripted_fraction) > math.floor(episode_round * scripted_fraction)
+
+
+def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=print, env=None) -> Path:
+    """Roll out, render and write `config.num_images` images into the new directory `out_dir`.
+
+    `env`: an AssemblyEnv to use instead of building one from the config (tests share theirs);
+    its task, family, action dimension and world count then replace the config's.
+    """
+    from ..envs.assembly_env import AssemblyEnv, EnvConfig
+    from ..envs.scripted import ScriptedInserter
+    from ..sim.camera import TASK_CAMERAS, TaskCamera
+
+    if env is not None:
+        config = dataclasses.replace(config, task=env.cfg.task, family=env.cfg.family,
+                                     action_dim=env.cfg.action_dim, num_envs=env.num_envs)
+    cfg = config
+    out_dir = Path(out_dir)
+    spec = dataclasses.replace(TASK_CAMERAS[cfg.task], width=cfg.resolution, height=cfg.resolution)
+    meta = {"source": "scripted demonstrator with command noise + uniform random actions",
+            "family": cfg.family, "action_dim": cfg.action_dim, "num_envs": cfg.num_envs,
+            "scripted_fraction": cfg.scripted_fraction, "frame_stride": cfg.frame_stride,
+            "noise_offset": cfg.noise_offset, "noise_step": cfg.noise_step, "episode_steps": cfg.episode_steps,
+            "camera": dataclasses.asdict(spec),
+            "state": "fixed tip relative to the TCP in the TCP frame (x, y, z, m), relative yaw (rad)"}
+    # the writer first: a non-empty out_dir is refused before anything is built
+    writer = ImageSetWriter(out_dir, cfg.num_images, cfg.resolution, cfg.task, cfg.val_fraction, cfg.seed, meta)
+    if env is None:
+        env = AssemblyEnv(EnvConfig(task=cfg.task, family=cfg.family, action_dim=cfg.action_dim,
+                                    num_envs=cfg.num_envs, device=cfg.device, seed=cfg.seed))
+    steps = min(cfg.episode_steps or env.max_episode_length, env.max_episode_length)
+    camera = TaskCamera(env.model, spec, env.num_envs)
+    demonstrator = ScriptedInserter(seed=cfg.seed)
+    gen = torch.Generator(device=env.tdev).manual_seed(cfg.seed + 1)
+    n, written, episode_round = env.num_envs, 0, 0
+    bar = tqdm(total=cfg.num_images, unit="img", disable=not progress, desc=f"images {cfg.task} {cfg.resolution}px")
+    t0 = time.perf_counter()
+    with writer:
+        while written < cfg.num_images:
+            env.reset()
+            scripted = is_scripted_round(episode_round, cfg.scripted_fraction)
+            if scripted:
+                demonstrator.reset(env)
+                offset = torch.zeros(n, 3, device=env.tdev)
+                offset[:, :2] = cfg.noise_offset * torch.randn(n, 2, generator=gen, device=env.tdev)
+            episode_ids = episode_round * n + torch.arange(n, device=env.tdev, dtype=torch.int32)
+            for k in range(steps):
+                if k % cfg.frame_stride == 0 and written < cfg.num_images:
+                    take = min(n, cfg.num_images - written)
+                    hand_p, hand_q = env.hand_pose()
+                    images = camera.render(env.state_0, hand_p, hand_q)
+                    state = relative_target_state(env)
+                    writer.add(images[:take], state[:take], episode_ids[:take])
+                    written += take
+                    bar.update(take)
+                if scripted:
+                    pos, quat = demonstrator.act(env)
+                    noise = cfg.noise_step * torch.randn(n, 3, generator=gen, device=env.tdev)
+                    env.step_pose(pos + offset + noise, quat)
+                else:
+                    env.step(2.0 * torch.rand(n, cfg.action_dim, generator=gen, device=env.tdev) - 1.0)
+            episode_round += 1
+    bar.close()
+    wall = time.perf_counter() - t0
+    log(f"{cfg.num_images} images ({episode_round} episode rounds of {n} worlds) in {wall:.0f} s "
+        f"({cfg.num_images / max(wall, 1e-9):.1f} images/s) -> {out_dir}")
+    return out_dir
+
+
+def default_image_dir(cache_dir, task: str, resolution: int, num_images: int, seed: int = 0) -> Path:
+    """Where run.py caches a task's image set."""
+    return Path(cache_dir) / task / f"images_r{resolution}_n{num_images}_seed{seed}"
+
