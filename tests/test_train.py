@@ -7,7 +7,6 @@ KGRL run uses synthetic demonstrations (--demos), so nothing is recorded in the 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -15,6 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scripts import load_script
 import torch
 
 from quat_ref import q_to_matrix
@@ -23,16 +23,12 @@ from vkgrl_newton.kmp.pose import quat_from_euler_xyz
 from vkgrl_newton.kmp.prior import fit_prior
 from vkgrl_newton.tasks import get_task
 
-ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac", "batch_size=8",
         "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000"]
 
 
 def load_run_module():
-    spec = importlib.util.spec_from_file_location("train_run", ROOT / "train" / "run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("run")
 
 
 @pytest.fixture(scope="module")
@@ -240,9 +236,7 @@ def test_run_unavailable_method_or_task_says_what_is_missing(run_py, argv, messa
 def test_plot_runs_mean_and_std_over_seeds(tmp_path):
     from torch.utils.tensorboard import SummaryWriter
 
-    spec = importlib.util.spec_from_file_location("plot_runs", ROOT / "train" / "plot_runs.py")
-    plot_runs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(plot_runs)
+    plot_runs = load_script("plot_runs")
     finals = {"sac": [], "kgrl": []}
     dirs = []
     for method, offset in (("sac", 0.0), ("kgrl", 0.5)):

@@ -21,32 +21,27 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from vkgrl_newton.cli_types import positive_int  # noqa: E402
+
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 from vkgrl_newton.vision.collect import CollectConfig, collect_images  # noqa: E402
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text}")
-    return value
 
 
 def main(argv=None) -> int:
     d = CollectConfig()
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", default=d.task, choices=sorted(TASKS))
-    ap.add_argument("--num-images", type=_positive_int, default=d.num_images)
+    ap.add_argument("--num-images", type=positive_int, default=d.num_images)
     ap.add_argument("--out", type=Path, required=True, help="new directory (never written into if not empty)")
-    ap.add_argument("--resolution", type=_positive_int, default=d.resolution,
+    ap.add_argument("--resolution", type=positive_int, default=d.resolution,
                     help="square image side in pixels (the thesis: 256; quick: 64)")
-    ap.add_argument("--num-envs", type=_positive_int, default=d.num_envs)
+    ap.add_argument("--num-envs", type=positive_int, default=d.num_envs)
     ap.add_argument("--env", default=d.family, choices=FAMILIES)
     ap.add_argument("--action-dim", type=int, default=d.action_dim, choices=ACTION_DIMS)
     ap.add_argument("--scripted-fraction", type=float, default=d.scripted_fraction,
                     help="fraction of episode rounds run by the noisy demonstrator (the rest: random actions)")
-    ap.add_argument("--frame-stride", type=_positive_int, default=d.frame_stride)
+    ap.add_argument("--frame-stride", type=positive_int, default=d.frame_stride)
     ap.add_argument("--val-fraction", type=float, default=d.val_fraction)
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")

@@ -41,6 +41,8 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from vkgrl_newton.cli_types import positive_int  # noqa: E402
+
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_checkpoint  # noqa: E402
 from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
@@ -71,8 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--env", default="factory", choices=FAMILIES)
     ap.add_argument("--action-dim", type=int, default=4, choices=ACTION_DIMS)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--num-envs", type=_positive_int, default=None, help="worlds (default: the preset's)")
-    ap.add_argument("--total-steps", type=_positive_int, default=None,
+    ap.add_argument("--num-envs", type=positive_int, default=None, help="worlds (default: the preset's)")
+    ap.add_argument("--total-steps", type=positive_int, default=None,
                     help="env transitions summed over worlds (default: the preset's)")
     ap.add_argument("--preset", default=None, choices=sorted(SAC_PRESETS),
                     help="SAC hyperparameters (default: thesis on CUDA, quick on CPU)")
@@ -85,20 +87,13 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its last checkpoint")
     ap.add_argument("--no-time-obs", action="store_true",
                     help="drop normalized time from the policy input (thesis A.1; the KMP still uses it)")
-    ap.add_argument("--checkpoint-every", type=_positive_int, default=None, help="transitions between checkpoints")
+    ap.add_argument("--checkpoint-every", type=positive_int, default=None, help="transitions between checkpoints")
     ap.add_argument("--eval-episodes", type=int, default=2, help="final deterministic evaluation episodes (0: none)")
     ap.add_argument("--demos", type=Path, default=None, help="KGRL: your own demonstrations (npz)")
     ap.add_argument("--num-demos", type=int, default=16, help="KGRL: scripted demonstrations to record")
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"), help="demonstrations, KMP tables")
     ap.add_argument("--no-progress", action="store_true")
     return ap
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text}")
-    return value
 
 
 def parse_sac_overrides(items: list[str]) -> dict:

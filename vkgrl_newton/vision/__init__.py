@@ -1,5 +1,6 @@
 """Vision for Vision-KGRL (thesis 4.3, 5.6): the denoising VAE, its augmentations, the image set
-it is trained on, the frozen encoder the policy reads, and a linear probe of the latent."""
+it is trained on, its training loop, the frozen encoder the policy reads, and a linear probe of
+the latent."""
 
 from vkgrl_newton.vision.augment import (
     AugmentConfig,
@@ -12,6 +13,7 @@ from vkgrl_newton.vision.augment import (
 )
 from vkgrl_newton.vision.dataset import IMAGESET_FILES, IMAGESET_FORMAT, STATE_DIM, ImageSet, ImageSetWriter
 from vkgrl_newton.vision.probe import linear_probe
+from vkgrl_newton.vision.train import train_vae
 from vkgrl_newton.vision.vae import (
     VAE_FORMAT,
     VAE_KIND,
@@ -39,6 +41,7 @@ __all__ = [
     "ImageSet",
     "ImageSetWriter",
     "linear_probe",
+    "train_vae",
     "VAE_FORMAT",
     "VAE_KIND",
     "DenoisingVAE",

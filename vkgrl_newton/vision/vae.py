@@ -30,6 +30,7 @@ Checkpoint (`save_vae` / `load_vae`, written by `agents.checkpoint.save_checkpoi
     model       DenoisingVAE.state_dict()
     optimizer   the optimizer's state_dict or None
     epoch       int or None
+    extra       a dict the trainer keeps with the weights (RNG states, loss history, ...) or None
 """
 
 from __future__ import annotations
@@ -253,12 +254,14 @@ _VAE_KEYS = ("kind", "vae_format", "config", "meta", "model")
 
 
 def _train_command(task: object = None) -> str:
-    return f"`python train/train_vae.py --task {task if task is not None else 'T'} ...`"
+    t = task if task is not None else "T"
+    return (f"`python train/collect_images.py --task {t} --out DIR` then `python train/train_vae.py --images DIR` "
+            f"(train/run.py --method vision_kgrl --task {t} does both itself)")
 
 
 def save_vae(path, vae: DenoisingVAE, config: VAEConfig, meta: dict, optimizer: torch.optim.Optimizer | None = None,
-             epoch: int | None = None) -> Path:
-    """Write the VAE (and optionally its optimizer and epoch) atomically to `path`.
+             epoch: int | None = None, extra: dict | None = None) -> Path:
+    """Write the VAE (and optionally its optimizer, epoch and `extra`) atomically to `path`.
 
     `meta` says what the VAE is (task, image set, ...); resolution and latent_dim are added from
     `config`, and a `meta` that states other values is a ValueError.
@@ -277,7 +280,7 @@ def save_vae(path, vae: DenoisingVAE, config: VAEConfig, meta: dict, optimizer: 
     return save_checkpoint(path, {
         "kind": VAE_KIND, "vae_format": VAE_FORMAT, "config": dataclasses.asdict(config), "meta": meta,
         "model": vae.state_dict(), "optimizer": None if optimizer is None else optimizer.state_dict(),
-        "epoch": None if epoch is None else int(epoch),
+        "epoch": None if epoch is None else int(epoch), "extra": extra,
     })
 
 

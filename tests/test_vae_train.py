@@ -1,0 +1,237 @@
+"""Tests of the VAE training loop (vkgrl_newton.vision.train) and its CLI (train/train_vae.py) on a
+tiny synthetic image set: 96 images of 32 x 32, a coloured square on a dark background whose
+position is a linear function of the state's x, y (size from z, colour from yaw), 12 episodes
+of 8 frames, a quarter of the episodes for validation. Tiny widths and batch 16 keep each
+training run well under a second of compute."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scripts import load_script
+import torch
+
+from vkgrl_newton.vision import FrozenEncoder, ImageSet, ImageSetWriter, VAEConfig, load_vae, train_vae
+from vkgrl_newton.vision.train import LOSS_KEYS, PROBE_TARGETS
+
+TASK, RES, N, EPISODES = "PegInsert", 32, 96, 12
+CHANNELS = (8, 16, 16, 32, 32)
+CONFIG = VAEConfig(resolution=RES, channels=CHANNELS)
+TRAIN = dict(batch_size=16, seed=0, config=CONFIG, progress=False, log=lambda *a: None)
+OUTPUTS = ("checkpoints/last.pt", "vae.pt", "loss_curves.png", "reconstructions.png", "metrics.json")
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+
+def synthetic_set(directory: Path) -> Path:
+    rng = np.random.default_rng(0)
+    state = np.column_stack([rng.uniform(-1, 1, (N, 2)), rng.uniform(0, 1, N), rng.uniform(-3, 3, N)])
+    state = state.astype(np.float32)  # x, y, z, yaw
+    images = np.full((N, RES, RES, 3), 30, np.uint8)
+    for i, (x, y, z, yaw) in enumerate(state):
+        half = int(3 + 2 * z)
+        cx, cy = int(round(16 + 9 * x)), int(round(16 + 9 * y))  # linear in x, y
+        images[i, max(cy - half, 0):cy + half + 1, max(cx - half, 0):cx + half + 1] = (
+            int(128 + 120 * np.cos(yaw)), 200, int(128 + 120 * np.sin(yaw)))
+    with ImageSetWriter(directory, N, RES, TASK, val_fraction=0.25, seed=0) as writer:
+        writer.add(images, state, np.repeat(np.arange(EPISODES), N // EPISODES))
+    return directory
+
+
+@pytest.fixture(scope="module")
+def image_dir(tmp_path_factory) -> Path:
+    return synthetic_set(tmp_path_factory.mktemp("imageset") / "set")
+
+
+@pytest.fixture(scope="module")
+def straight(torch_one_thread, image_dir, tmp_path_factory) -> tuple[Path, dict]:
+    """A 3-epoch run that never stopped: (run directory, returned metrics)."""
+    out = tmp_path_factory.mktemp("vae") / "straight"
+    return out, train_vae(image_dir, out, epochs=3, **TRAIN)
+
+
+def load_cli():
+    return load_script("train_vae")
+
+
+@pytest.fixture(scope="module")
+def cli():
+    return load_cli()
+
+
+# ----------------------------------------------------------------------------- a run and its files
+def test_run_writes_every_output_and_validation_loss_falls(straight, image_dir):
+    out, metrics = straight
+    for name in OUTPUTS:
+        assert (out / name).is_file(), name
+    assert list((out / "tb").glob("events.out.tfevents.*"))
+    assert json.loads((out / "metrics.json").read_text()) == json.loads(json.dumps(metrics))
+
+    _, payload = load_vae(out / "checkpoints" / "last.pt")
+    assert payload["epoch"] == 3 and payload["optimizer"] is not None
+    history = payload["extra"]["history"]
+    assert set(history) == {f"{s}/{k}" for s in ("train", "val") for k in LOSS_KEYS}
+    assert all(len(v) == 3 for v in history.values())
+    assert history["val/loss"][-1] < history["val/loss"][0]
+    assert metrics["epochs"] == 3 and metrics["final_val"] == {k: history[f"val/{k}"][-1] for k in LOSS_KEYS}
+    best = int(np.argmin(history["val/loss"])) + 1
+    assert metrics["best_epoch"] == best and metrics["best_val"]["loss"] == min(history["val/loss"])
+    for split in ("final_train", "final_val"):  # loss = recon + kl (eq. 4.48)
+        assert metrics[split]["loss"] == pytest.approx(metrics[split]["recon"] + metrics[split]["kl"], rel=1e-5)
+    assert metrics["wall_s"] > 0 and metrics["images_per_s"] > 0
+    assert metrics["num_train"] + metrics["num_val"] == N and metrics["image_dir"] == str(image_dir.resolve())
+    probe = metrics["probe"]
+    assert {f"r2_{t}" for t in PROBE_TARGETS} <= set(probe)
+    assert all(isinstance(probe[f"r2_{t}"], float) and probe[f"r2_{t}"] <= 1 for t in PROBE_TARGETS)
+    assert probe["num_fit"] == metrics["num_train"] and probe["num_score"] == metrics["num_val"]
+
+
+def test_tensorboard_scalars_per_epoch(straight):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out, _ = straight
+    acc = EventAccumulator(str(out / "tb"), size_guidance={"scalars": 0})
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {f"vae/{s}/{k}" for s in ("train", "val") for k in LOSS_KEYS} <= tags
+    _, payload = load_vae(out / "checkpoints" / "last.pt")
+    events = acc.Scalars("vae/val/loss")
+    assert [e.step for e in events] == [1, 2, 3]  # x axis = epoch
+    np.testing.assert_allclose([e.value for e in events], payload["extra"]["history"]["val/loss"], rtol=1e-6)
+
+
+def test_best_weights_load_for_the_rl_side(straight, image_dir):
+    out, metrics = straight
+    vae, payload = load_vae(out / "vae.pt", expect={"task": TASK, "resolution": RES})
+    assert payload["meta"]["latent_dim"] == 16 and payload["meta"]["image_dir"] == str(image_dir.resolve())
+    assert payload["epoch"] == metrics["best_epoch"] and payload["optimizer"] is None
+    images = ImageSet(image_dir)
+    enc = FrozenEncoder(vae)
+    mu = enc(images.images[images.val_idx])  # uint8 (N, R, R, 3), camera layout
+    assert mu.shape == (len(images.val_idx), 16) and torch.isfinite(mu).all()
+    if metrics["best_epoch"] == 3:  # the best is the last epoch: same weights as last.pt
+        last, _ = load_vae(out / "checkpoints" / "last.pt")
+        for a, b in zip(vae.state_dict().values(), last.state_dict().values()):
+            assert torch.equal(a, b)
+
+
+def test_only_the_training_encoder_input_is_augmented(image_dir, tmp_path, monkeypatch):
+    """A marked augmentation (+1: every pixel > 1) must reach the encoder in training (and the
+    figure's input row) only; every loss target and every validation / probe input is clean."""
+    from vkgrl_newton.vision import train as train_module
+    from vkgrl_newton.vision.vae import DenoisingVAE
+
+    encoded, targets = [], []
+    real_encode, real_loss = DenoisingVAE.encode, train_module.vae_loss
+
+    def encode(self, x):
+        encoded.append(bool(x.min() >= 1.0) if x.max() > 1.0 else False)
+        return real_encode(self, x)
+
+    def loss(recon, target, mu, logvar):
+        targets.append(float(target.max()))
+        return real_loss(recon, target, mu, logvar)
+
+    monkeypatch.setattr(train_module, "augment", lambda images, generator: images + 1.0)
+    monkeypatch.setattr(train_module, "vae_loss", loss)
+    monkeypatch.setattr(DenoisingVAE, "encode", encode)
+    train_vae(image_dir, tmp_path / "marked", epochs=1, **TRAIN)
+    images = ImageSet(image_dir)
+    batches = -(-len(images.train_idx) // 16)  # training batches of the one epoch
+    val_batches = -(-len(images.val_idx) // 16)
+    assert len(targets) == batches + val_batches and max(targets) <= 1.0
+    # order: training batches (augmented), validation (clean), figure (augmented), probe (clean)
+    assert encoded == [True] * batches + [False] * val_batches + [True] + [False] * (batches + val_batches)
+
+
+# ----------------------------------------------------------------------------- resume
+def test_resume_continues_the_same_run_bitwise(straight, image_dir, tmp_path):
+    """On the CPU every op here is deterministic and all randomness comes from the restored
+    generators, so 2 epochs + resume to 3 give the very weights of a straight 3-epoch run."""
+    out = tmp_path / "resumed"
+    first = train_vae(image_dir, out, epochs=2, **TRAIN)
+    assert first["epochs"] == 2
+    messages = []
+    metrics = train_vae(image_dir, out, epochs=3, resume=True, **{**TRAIN, "log": messages.append})
+    assert any("resumed" in m and "epoch 2" in m for m in messages)
+    _, resumed = load_vae(out / "checkpoints" / "last.pt")
+    _, reference = load_vae(straight[0] / "checkpoints" / "last.pt")
+    assert resumed["epoch"] == 3 == metrics["epochs"]
+    assert resumed["model"].keys() == reference["model"].keys()
+    for name, tensor in reference["model"].items():
+        assert torch.equal(resumed["model"][name], tensor), name
+    for a, b in zip(resumed["optimizer"]["state"].values(), reference["optimizer"]["state"].values()):
+        assert all(torch.equal(a[k], b[k]) for k in ("step", "exp_avg", "exp_avg_sq"))
+    assert torch.equal(resumed["extra"]["order_rng"], reference["extra"]["order_rng"])
+    assert torch.equal(resumed["extra"]["noise_rng"], reference["extra"]["noise_rng"])
+    assert resumed["extra"]["history"] == reference["extra"]["history"]
+    assert metrics["final_val"] == straight[1]["final_val"] and metrics["probe"] == straight[1]["probe"]
+
+
+def test_resume_refuses_another_run(image_dir, tmp_path, straight):
+    with pytest.raises(FileNotFoundError, match="last.pt"):
+        train_vae(image_dir, tmp_path / "nothing", epochs=3, resume=True, **TRAIN)
+    with pytest.raises(ValueError, match="lr"):
+        train_vae(image_dir, straight[0], epochs=3, resume=True, **{**TRAIN, "lr": 5e-4})
+    with pytest.raises(ValueError, match="trained 3 epochs already"):
+        train_vae(image_dir, straight[0], epochs=2, resume=True, **TRAIN)
+
+
+def test_non_empty_out_dir_without_resume_is_an_error(image_dir, tmp_path):
+    out = tmp_path / "taken"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match=str(out)):
+        train_vae(image_dir, out, epochs=1, **TRAIN)
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # nothing written
+
+
+# ----------------------------------------------------------------------------- CLI
+def test_cli_trains_and_resumes(cli, image_dir, tmp_path, capsys):
+    out = tmp_path / "cli"
+    common = ["--images", str(image_dir), "--out", str(out), "--device", "cpu", "--no-progress"]
+    assert cli.main([*common, "--epochs", "1", "--batch-size", "16", "--channels", "8,16,16,32,32"]) == 0
+    assert all((out / name).is_file() for name in OUTPUTS)
+    # resume takes batch size, channels, lr and seed from the run; --epochs raises the total
+    assert cli.main([*common, "--resume", "--epochs", "2"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["epochs"] == 2 and metrics["batch_size"] == 16 and tuple(metrics["config"]["channels"]) == CHANNELS
+    with pytest.raises(SystemExit) as exc:
+        cli.main([*common, "--resume", "--batch-size", "32"])
+    assert exc.value.code == 2 and "--batch-size 32" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv,flag", [
+    (["--epochs", "0"], "--epochs"),
+    (["--epochs", "ten"], "--epochs"),
+    (["--batch-size", "0"], "--batch-size"),
+    (["--lr", "-1e-3"], "--lr"),
+    (["--seed", "-1"], "--seed"),
+    (["--channels", "8,16,16"], "--channels"),
+    (["--channels", "8,16,16,32,30"], "--channels"),  # not a multiple of 8: VAEConfig says so
+    (["--device", "tpu:9"], "--device"),
+    (["--images", "MISSING"], "--images"),
+    (["--resume"], "--resume"),  # needs --out
+])
+def test_cli_bad_flags_are_argparse_errors(cli, image_dir, tmp_path, argv, flag, capsys):
+    images = [] if "--images" in argv else ["--images", str(image_dir)]
+    argv = [a.replace("MISSING", str(tmp_path / "no_such_set")) for a in argv]
+    with pytest.raises(SystemExit) as exc:
+        cli.main([*images, "--out", str(tmp_path / "o"), "--no-progress", *argv]
+                 if flag != "--resume" else [*images, "--no-progress", *argv])
+    assert exc.value.code == 2
+    assert flag in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_images_is_required_and_out_is_never_reused(cli, image_dir, straight, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--epochs", "1"])
+    assert exc.value.code == 2 and "--images" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--images", str(image_dir), "--out", str(straight[0]), "--epochs", "1", "--device", "cpu"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "--out" in err and str(straight[0]) in err
