@@ -216,6 +216,8 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     (["--sac", "batch_size=zero"], "not a valid int"),
     (["--sac", "batch_size=0"], "batch_size"),
     (["--resume"], "--resume needs --run-dir"),
+    (["--method", "sac", "--vae", "x.pt"], "--vae is for the vision methods"),
+    (["--method", "vision_sac", "--vae", "no_such_vae.pt"], "does not exist"),
 ])
 def test_run_bad_flags_are_argparse_errors(run_py, argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -224,8 +226,58 @@ def test_run_bad_flags_are_argparse_errors(run_py, argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+def test_run_vision_kgrl_with_a_given_vae_and_evaluate_its_checkpoint(run_py, wp_cpu, tmp_path, peg_demos_file):
+    import hashlib
+
+    from vkgrl_newton.vision import DenoisingVAE, VAEConfig, save_vae
+
+    cfg = VAEConfig(resolution=32, channels=(8, 8, 8, 8, 8))
+    vae_file = save_vae(tmp_path / "vae.pt", DenoisingVAE(cfg), cfg, meta={"task": "PegInsert"})
+    digest = hashlib.sha256(vae_file.read_bytes()).hexdigest()
+    run_dir = tmp_path / "vkgrl"
+    code = run_py.main(["--method", "vision_kgrl", "--vae", str(vae_file), "--run-dir", str(run_dir),
+                        "--demos", str(peg_demos_file), "--total-steps", "16", "--eval-episodes", "1", *TINY])
+    assert code == 0
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["obs_dim"] == 8 + 16 and config["vision"] == {"vae": str(vae_file), "latent_dim": 16}  # eq. 5.6
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["episodes"] == 2 and metrics["method"] == "vision_kgrl"
+    assert hashlib.sha256(vae_file.read_bytes()).hexdigest() == digest  # the encoder stays frozen
+    evaluate_py = load_script("evaluate")
+    out = tmp_path / "eval.json"
+    assert evaluate_py.main(["--checkpoint", str(run_dir / "checkpoints" / "last.pt"), "--num-envs", "2",
+                             "--episodes", "1", "--device", "cpu", "--demos", str(peg_demos_file),
+                             "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["policy"] == "vision_kgrl"
+
+
+def test_env_vision_slot_follows_the_state(wp_cpu):
+    """attach_vision: the latent is recomputed whenever the state changed, so it always shows the
+    state the rest of the observation shows (here a stand-in source: the TCP position)."""
+    from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
+
+    env = AssemblyEnv(EnvConfig(num_envs=2, action_dim=4, device="cpu", seed=3, vision_latent_dim=3))
+    calls = []
+
+    def source(e):
+        calls.append(int(e.episode_length_buf[0]))
+        return e.tcp_pose()[0].clone()
+
+    env.attach_vision(source)
+    obs = env.get_observations()["policy"]
+    torch.testing.assert_close(obs[:, -3:], env.tcp_pose()[0])
+    env.get_observations()
+    assert len(calls) == 1  # unchanged state: not rendered again
+    for _ in range(3):
+        obs = env.step(torch.full((2, 4), 0.5))[0]["policy"]
+        torch.testing.assert_close(obs[:, -3:], env.tcp_pose()[0])
+        torch.testing.assert_close(obs[:, 1:4], env.tcp_pose()[0] - env.target_frame_pos_w)
+    assert calls == [0, 1, 2, 3]
+    with pytest.raises(ValueError, match="vision_latent_dim"):
+        AssemblyEnv.attach_vision(type("E", (), {"cfg": EnvConfig(num_envs=1)})(), source)
+
+
 @pytest.mark.parametrize("argv, message", [
-    (["--method", "vision_kgrl"], "VAE"),
     (["--task", "NutThread"], "not simulated yet"),
 ])
 def test_run_unavailable_method_or_task_says_what_is_missing(run_py, argv, message, capsys):

@@ -77,11 +77,26 @@ def main(argv=None) -> int:
         args.no_time_obs = not meta["time_obs"]
         args.policy = meta["method"]
 
+    vision = payload["meta"].get("vision") if payload is not None else None
+    encoder = None
+    if vision is not None:  # a vision_* run: the same frozen encoder it trained with
+        from vkgrl_newton.vision.vae import FrozenEncoder, load_vae
+
+        try:
+            vae, _ = load_vae(vision["vae"], expect={"task": args.task})
+        except (FileNotFoundError, ValueError) as e:
+            ap.error(f"--checkpoint: the run's VAE: {e}")
+        encoder = FrozenEncoder(vae)
     cfg = EnvConfig(task=args.task, family=args.env, action_dim=args.action_dim, num_envs=args.num_envs,
-                    device=args.device, seed=args.seed, sim=SimConfig(solver=args.solver))
+                    device=args.device, seed=args.seed, sim=SimConfig(solver=args.solver),
+                    vision_latent_dim=encoder.latent_dim if encoder is not None else 0)
     env = AssemblyEnv(cfg)
+    if encoder is not None:
+        from vkgrl_newton.vision.latent import CameraLatent
+
+        env.attach_vision(CameraLatent(env, encoder))
     action_path = None
-    if args.policy in ("kmp_prior", "kgrl"):
+    if args.policy in ("kmp_prior", "kgrl", "vision_kgrl"):
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device)

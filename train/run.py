@@ -4,11 +4,14 @@
 
 Methods (thesis ch. 4-5): `sac` acts through Factory's delta-pose mapping; `kgrl` is the same
 SAC acting in the null space of the task's KMP prior (vkgrl_newton/agents/kgrl.py), the action
-path of eq. 4.36. The vision methods need the VAE of the vision issue and say so.
+path of eq. 4.36. `vision_sac` and `vision_kgrl` add the 16-d mean of a frozen denoising-VAE
+encoder of the hand camera's image to the policy observation (eq. 5.6; vkgrl_newton/vision/).
 
 Everything a method needs is produced on first use and cached under `--cache-dir` (KGRL: scripted
-demonstrations recorded in the simulator, and the KMP tables fitted to them). A run directory
-holds:
+demonstrations recorded in the simulator, and the KMP tables fitted to them; vision: the task
+camera image set and the VAE trained on it, vkgrl_newton/vision/pipeline.py, per task and preset:
+64 px / 4,096 images / 20 epochs for `quick`, 256 px / 130,000 / 400 for `thesis`; `--vae`
+uses your own). A run directory holds:
 
     config.json          the arguments and the SAC configuration
     tb/                  tensorboard scalars (episode reward, success rate, mean contact force,
@@ -51,6 +54,7 @@ from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY,
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
 METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
+VISION_LATENT_DIM = 16  # d_z of the thesis's VAE (5.6)
 # per preset: worlds, total transitions, checkpoint interval (transitions)
 RUN_DEFAULTS = {
     "thesis": {"num_envs": 128, "total_steps": 1_000_000, "checkpoint_every": 50_000},
@@ -91,7 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--eval-episodes", type=int, default=2, help="final deterministic evaluation episodes (0: none)")
     ap.add_argument("--demos", type=Path, default=None, help="KGRL: your own demonstrations (npz)")
     ap.add_argument("--num-demos", type=int, default=16, help="KGRL: scripted demonstrations to record")
-    ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"), help="demonstrations, KMP tables")
+    ap.add_argument("--vae", type=Path, default=None,
+                    help="vision methods: your own trained vae.pt (train/train_vae.py) instead of the cached one")
+    ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
+                    help="demonstrations, KMP tables, image sets, VAEs")
     ap.add_argument("--no-progress", action="store_true")
     return ap
 
@@ -129,9 +136,6 @@ def _default_device() -> str:
 
 def unavailable(args) -> str | None:
     """Why this combination cannot run yet, or None."""
-    if args.method.startswith("vision_"):
-        return (f"method {args.method!r} needs the task camera image set and the denoising VAE, which are not "
-                "implemented yet (vision issue); available methods: sac, kgrl")
     if args.task not in TASK_GEOMETRY:
         return f"task {args.task!r} is not simulated yet; available tasks: {sorted(TASK_GEOMETRY)}"
     return None
@@ -139,9 +143,29 @@ def unavailable(args) -> str | None:
 
 def run_meta(args, obs_dim: int, sac_cfg) -> dict:
     """What identifies a run; a resumed run must match it field by field."""
-    return {"task": args.task, "method": args.method, "env": args.env, "action_dim": args.action_dim,
+    meta = {"task": args.task, "method": args.method, "env": args.env, "action_dim": args.action_dim,
             "seed": args.seed, "num_envs": args.num_envs, "preset": args.preset, "time_obs": not args.no_time_obs,
             "obs_dim": obs_dim, "sac": dataclasses.asdict(sac_cfg)}
+    if uses_vision(args.method):
+        meta["vision"] = {"vae": str(vae_path(args)), "latent_dim": VISION_LATENT_DIM}
+    return meta
+
+
+def uses_vision(method: str) -> bool:
+    return method.startswith("vision_")
+
+
+def uses_kmp(method: str) -> bool:
+    return method in ("kgrl", "vision_kgrl")
+
+
+def vae_path(args) -> Path:
+    """The run's vae.pt: --vae, or the cached one of the task and preset (made when missing)."""
+    from vkgrl_newton.vision.pipeline import VISION_PRESETS, default_vae_dir
+
+    if args.vae is not None:
+        return Path(args.vae)
+    return default_vae_dir(args.cache_dir, args.task, VISION_PRESETS[args.preset]) / "vae.pt"
 
 
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
@@ -174,6 +198,8 @@ def main(argv=None) -> int:
                 setattr(args, name, meta[name])
         if "no_time_obs" not in given:
             args.no_time_obs = not meta["time_obs"]
+        if "vae" not in given and "vision" in meta:
+            args.vae = Path(meta["vision"]["vae"])
         for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every
             if name not in given:
                 setattr(args, name, value)
@@ -210,7 +236,12 @@ def main(argv=None) -> int:
     ckpt_path = run_dir / "checkpoints" / "last.pt"
     if not args.resume and run_dir.exists() and any(run_dir.iterdir()):
         ap.error(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another directory")
-    args.obs_dim = observation_dim(args.env) - (1 if args.no_time_obs else 0)
+    args.latent_dim = VISION_LATENT_DIM if uses_vision(args.method) else 0
+    if args.vae is not None and not uses_vision(args.method):
+        ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
+    if args.vae is not None and not args.vae.is_file():
+        ap.error(f"--vae {args.vae} does not exist; train one with train/train_vae.py or leave --vae out")
+    args.obs_dim = observation_dim(args.env, args.latent_dim) - (1 if args.no_time_obs else 0)
     if payload is not None:  # a foreign checkpoint stops here, before anything is built
         try:
             check_meta(payload["meta"], run_meta(args, args.obs_dim, args.sac_config), ckpt_path)
@@ -228,10 +259,23 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     torch.manual_seed(args.seed)
     log = tqdm.write
 
+    encoder = None
+    if uses_vision(args.method):
+        from vkgrl_newton.vision.pipeline import VISION_PRESETS, load_or_make_encoder
+
+        encoder, _ = load_or_make_encoder(args.task, VISION_PRESETS[args.preset], args.cache_dir, args.device,
+                                          vae_path=args.vae, log=log, progress=not args.no_progress)
+        if encoder.latent_dim != args.latent_dim:
+            raise SystemExit(f"train/run.py: the VAE's latent has {encoder.latent_dim} dimensions, the vision "
+                             f"methods use {args.latent_dim} (thesis 5.6)")
     env = AssemblyEnv(EnvConfig(task=args.task, family=args.env, action_dim=args.action_dim, num_envs=args.num_envs,
-                                device=args.device, seed=args.seed))
+                                device=args.device, seed=args.seed, vision_latent_dim=args.latent_dim))
+    if encoder is not None:
+        from vkgrl_newton.vision.latent import CameraLatent
+
+        env.attach_vision(CameraLatent(env, encoder))
     action_path = None
-    if args.method == "kgrl":
+    if uses_kmp(args.method):
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos,

@@ -247,6 +247,8 @@ class AssemblyEnv(VecEnv):
         self.first_success_step = torch.full((E,), -1, dtype=torch.long, device=tdev)
         self.episode_reward = z(E)
         self.vision_latent = z(E, cfg.vision_latent_dim)
+        self.vision_source = None  # attach_vision
+        self._state_version, self._latent_version = 0, -1  # the latent is refreshed when they differ
         self.physics_resets_total = 0
         self._physics_resets_step = 0
         self.obs_dim = observation_dim(cfg.family, cfg.vision_latent_dim)
@@ -329,6 +331,7 @@ class AssemblyEnv(VecEnv):
         """One 1/120 s physics step: `substeps` x (Jacobian, mass matrix, OSC, collision, solver)."""
         sc, m = self.scene, self.model
         self._tick(None)
+        self._state_version += 1
         for _ in range(self.substeps):
             s0 = self.state_0
             v = self._state_views(s0)
@@ -489,6 +492,7 @@ class AssemblyEnv(VecEnv):
         n = int(mask.sum())
         if n == 0:
             return
+        self._state_version += 1  # the state is written directly below
         E = self.num_envs
         v = self._state_views(self.state_0)
         task, geo = self.task, self.geometry
@@ -601,8 +605,22 @@ class AssemblyEnv(VecEnv):
             noise = FORCE_OBS_NOISE * torch.randn(self.num_envs, 3, device=self.tdev, generator=self.generator)
             parts.append(self.force_smoothed_w + noise)
         if self.cfg.vision_latent_dim:
+            if self.vision_source is not None and self._latent_version != self._state_version:
+                self.set_vision_latent(self.vision_source(self))
+                self._latent_version = self._state_version
             parts.append(self.vision_latent)
         return TensorDict({"policy": torch.cat(parts, -1)}, batch_size=[self.num_envs])
+
+    def attach_vision(self, source) -> None:
+        """Fill the vision slot from `source(env) -> (E, vision_latent_dim)` (e.g. the task camera
+        through a frozen encoder, `vision.latent.CameraLatent`). It is called lazily, when an
+        observation is read after the state changed, so the latent always shows the state the
+        rest of the observation shows: after each step, after resets, and in the final
+        observations of ended episodes. None detaches."""
+        if source is not None and not self.cfg.vision_latent_dim:
+            raise ValueError("attach_vision needs EnvConfig.vision_latent_dim > 0 (the slot to fill)")
+        self.vision_source = source
+        self._latent_version = -1
 
     def set_vision_latent(self, z: torch.Tensor) -> None:
         if z.shape != self.vision_latent.shape:

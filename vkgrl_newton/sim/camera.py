@@ -87,11 +87,21 @@ class TaskCamera:
         pos = hand_pos_w + quat_rotate(hand_quat_w, p_mount)
         return torch.cat((pos, quat_mul(hand_quat_w, q_mount)), dim=-1)
 
-    def render(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor) -> np.ndarray:
-        """uint8 (E, H, W, 3) images; world i is seen by camera i."""
+    def _render(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor) -> None:
         self.model.bvh_refit_shapes(state)  # bodies moved since the last render
         poses = self.camera_poses_w(hand_pos_w, hand_quat_w).detach().float().contiguous()
         tfs = wp.from_torch(poses, dtype=wp.transformf)  # (p, q xyzw) is Warp's transform layout
         self.sensor.update(state, tfs, self.rays, color_image=self.color)
+
+    def render(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor) -> np.ndarray:
+        """uint8 (E, H, W, 3) images on the host (a copy); world i is seen by camera i."""
+        self._render(state, hand_pos_w, hand_quat_w)
         h, w = self.spec.height, self.spec.width
         return self.color.numpy().view(np.uint8).reshape(self.num_worlds, h, w, 4)[..., :3].copy()
+
+    def render_torch(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor) -> torch.Tensor:
+        """uint8 (E, H, W, 3) images as a torch view of the sensor's buffer, on the sim device (no
+        host round trip on CUDA). The next render overwrites it: consume or clone it first."""
+        self._render(state, hand_pos_w, hand_quat_w)
+        h, w = self.spec.height, self.spec.width
+        return wp.to_torch(self.color).view(torch.uint8).reshape(self.num_worlds, h, w, 4)[..., :3]

@@ -1,0 +1,79 @@
+"""What the vision methods need before they train, produced on first use and cached per task.
+
+    encoder, info = load_or_make_encoder("PegInsert", VISION_PRESETS["quick"], "runs/cache", "cpu")
+
+1. the image set (`vision.collect`): cache/<task>/images_r<R>_n<N>_seed<S>/, collected into a
+   temporary sibling directory and renamed when complete, so an interrupted collection leaves no
+   half set under the final name (a stale temporary directory of ours is removed and redone);
+2. the VAE (`vision.train`): cache/<task>/vae_r<R>_n<N>_e<E>_seed<S>/vae.pt; a VAE run that was
+   interrupted (checkpoints/last.pt but no metrics.json) is resumed, not restarted;
+3. the frozen encoder (`FrozenEncoder`) of that vae.pt, checked against task and resolution.
+
+Presets: `thesis` as Tables 5.5-5.6 (256 x 256, 130,000 images, 400 epochs: a GPU job);
+`quick` small enough for a 2-core CPU (64 x 64, 4,096 images, 20 epochs: minutes).
+A user's own VAE (`vae_path`) skips 1 and 2.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from .collect import CollectConfig, collect_images, default_image_dir
+from .train import train_vae
+from .vae import FrozenEncoder, load_vae
+
+__all__ = ["VisionPreset", "VISION_PRESETS", "load_or_make_encoder", "default_vae_dir"]
+
+
+@dataclass(frozen=True)
+class VisionPreset:
+    resolution: int
+    num_images: int
+    vae_epochs: int
+    seed: int = 0
+
+
+VISION_PRESETS = {
+    "thesis": VisionPreset(resolution=256, num_images=130_000, vae_epochs=400),
+    "quick": VisionPreset(resolution=64, num_images=4_096, vae_epochs=20),
+}
+
+
+def default_vae_dir(cache_dir, task: str, preset: VisionPreset) -> Path:
+    return (Path(cache_dir) / task / f"vae_r{preset.resolution}_n{preset.num_images}_e{preset.vae_epochs}"
+            f"_seed{preset.seed}")
+
+
+def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str, vae_path=None,
+                         num_envs: int = 16, log=print, progress: bool = True) -> tuple[FrozenEncoder, dict]:
+    """The frozen encoder for `task` and what it came from ({"vae": path, "resolution", "latent_dim"})."""
+    if vae_path is not None:
+        vae, _ = load_vae(vae_path, expect={"task": task}, map_location=device)
+    else:
+        image_dir = default_image_dir(cache_dir, task, preset.resolution, preset.num_images, preset.seed)
+        if not (image_dir / "meta.json").is_file():
+            if image_dir.exists():
+                raise FileExistsError(f"{image_dir} exists but is not a complete image set (no meta.json); "
+                                      "it is not ours to delete: move it away and run again")
+            tmp = image_dir.with_name(image_dir.name + ".collecting")
+            if tmp.exists():  # our own interrupted collection
+                shutil.rmtree(tmp)
+            log(f"collecting {preset.num_images} task-camera images ({preset.resolution} px) -> {image_dir}")
+            collect_images(CollectConfig(task=task, num_images=preset.num_images, resolution=preset.resolution,
+                                         num_envs=num_envs, seed=preset.seed, device=device),
+                           tmp, progress=progress, log=log)
+            tmp.rename(image_dir)
+        vae_dir = default_vae_dir(cache_dir, task, preset)
+        vae_path = vae_dir / "vae.pt"
+        if not (vae_dir / "metrics.json").is_file():
+            resume = (vae_dir / "checkpoints" / "last.pt").is_file()
+            log(f"{'resuming' if resume else 'training'} the denoising VAE ({preset.vae_epochs} epochs) -> {vae_dir}")
+            train_vae(image_dir, vae_dir, epochs=preset.vae_epochs, seed=preset.seed, device=device, resume=resume,
+                      progress=progress, log=log)
+        vae, _ = load_vae(vae_path, expect={"task": task, "resolution": preset.resolution}, map_location=device)
+        log(f"VAE loaded: {vae_path}")
+    encoder = FrozenEncoder(vae)
+    return encoder, {"vae": str(vae_path), "resolution": encoder.config.resolution,
+                     "latent_dim": encoder.latent_dim}
