@@ -12,7 +12,7 @@ Phases (positions are of the held part's bottom, the quantity that must reach th
 2. descend to the entry point `entry_height` above the fixed tip;
 3. align again there (the descent couples into a lateral lag, see below);
 4. insert: a minimum-jerk descent to `push_depth` below the hole bottom (the compliant controller
-   turns the overshoot into a gentle push: 100 N/m x ~5 mm). If the part is still on top of the
+   turns the overshoot into a gentle push: 250 N/m x ~5 mm). If the part is still on top of the
    fixed part `retry_after_s` after the reference went below the tip, lift to `retry_height` and
    go back to phase 1.
 While the part is above the fixed tip and the arm is still, a slow integral correction removes the
@@ -22,7 +22,7 @@ the walls hold it on the axis: the correction decays, the lateral spring softens
 TCP is steered back above the axis, so a tilted part straightens instead of wedging.
 
 The demonstrator's own impedance. Every command is chosen so that the env's OSC applies the
-demonstrator's wrench F* = K (ref - x) - D v (K 100 N/m, D 45 N s/m, rotation 30 / 10.95), whatever
+demonstrator's wrench F* = K (ref - x) - D v (K 300 N/m, D 77 N s/m, rotation 30 / 10.95), whatever
 the family's gains and dead zone (`_invert_controller`); inserting, K along z is 250 N/m.
 
 Why (measured in this env): with Factory's gains (Kp 100 N/m, Kd 20) the TCP behaves like a
@@ -64,8 +64,11 @@ class ScriptedParams:
     align_tolerance: float = 0.0004  # m, lateral error of the part bottom counted as aligned
     settle_speed: float = 0.002  # m/s, TCP speed below which the arm counts as still
     align_timeout_s: float = 1.0  # s in an align phase before going on anyway
-    stiffness: float = 100.0  # N/m, the demonstrator's TCP stiffness (Factory's Kp)
-    damping: float = 45.0  # N s/m, its TCP damping (Factory's Kd, 20, leaves the arm at zeta ~0.3)
+    # N/m, the demonstrator's TCP stiffness: 3x Factory's Kp, so that the ~0.2-1 N the arm's own
+    # dynamics leave uncompensated (null-space posture, the wrist floating in Forge's torque dead
+    # zone) hold the part ~1 mm off the axis instead of ~2-3 mm; Forge 4D 61/64 vs 28/32 at 100
+    stiffness: float = 300.0
+    damping: float = 77.0  # N s/m, critical for the ~5 kg the TCP behaves like (Factory's Kd 20: zeta ~0.3)
     insert_stiffness_z: float = 250.0  # N/m along z while inserting: pushes a slightly tilted peg
     # (Forge 4D: the wrist floats within its torque dead zone, ~3 degrees) past the wall friction
     rot_stiffness: float = 30.0  # N m/rad (Factory's)

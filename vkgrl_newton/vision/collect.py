@@ -130,7 +130,9 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
                 offset[:, :2] = cfg.noise_offset * torch.randn(n, 2, generator=gen, device=env.tdev)
             episode_ids = episode_round * n + torch.arange(n, device=env.tdev, dtype=torch.int32)
             for k in range(steps):
-                if k % cfg.frame_stride == 0 and written < cfg.num_images:
+                if written >= cfg.num_images:
+                    break  # no need to finish the episode
+                if k % cfg.frame_stride == 0:
                     take = min(n, cfg.num_images - written)
                     hand_p, hand_q = env.hand_pose()
                     images = camera.render(env.state_0, hand_p, hand_q)
