@@ -131,9 +131,9 @@ def test_only_the_training_encoder_input_is_augmented(image_dir, tmp_path, monke
         encoded.append(bool(x.min() >= 1.0) if x.max() > 1.0 else False)
         return real_encode(self, x)
 
-    def loss(recon, target, mu, logvar):
+    def loss(recon, target, mu, logvar, kl_weight=1.0):
         targets.append(float(target.max()))
-        return real_loss(recon, target, mu, logvar)
+        return real_loss(recon, target, mu, logvar, kl_weight=kl_weight)
 
     monkeypatch.setattr(train_module, "augment", lambda images, generator: images + 1.0)
     monkeypatch.setattr(train_module, "vae_loss", loss)
@@ -235,3 +235,9 @@ def test_cli_images_is_required_and_out_is_never_reused(cli, image_dir, straight
         cli.main(["--images", str(image_dir), "--out", str(straight[0]), "--epochs", "1", "--device", "cpu"])
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "--out" in err and str(straight[0]) in err
+
+
+def test_kl_warmup_epochs_must_be_a_nonnegative_int(image_dir, tmp_path):
+    with pytest.raises(ValueError, match="kl_warmup_epochs=-1.*>= 0"):
+        train_vae(image_dir, tmp_path / "run", epochs=1, kl_warmup_epochs=-1)
+    assert not (tmp_path / "run").exists()  # checked before anything is written

@@ -426,3 +426,14 @@ def test_vae_checkpoint_round_trip_and_errors(tmp_path):
     with pytest.raises(ValueError, match="resolution"):
         save_vae(tmp_path / "x.pt", vae, cfg, {"resolution": 64})
     assert not (tmp_path / "x.pt").exists()
+
+
+def test_vae_loss_kl_weight_scales_only_the_kl_term():
+    g = torch.Generator().manual_seed(5)
+    recon, target = torch.rand(3, 3, 4, 4, generator=g), torch.rand(3, 3, 4, 4, generator=g)
+    mu, logvar = torch.randn(3, 16, generator=g), torch.randn(3, 16, generator=g)
+    full, half = vae_loss(recon, target, mu, logvar), vae_loss(recon, target, mu, logvar, kl_weight=0.5)
+    sse = (recon - target).double().square().flatten(1).sum(1)
+    kl = 0.5 * (mu.double().square() + logvar.double().exp() - logvar.double() - 1).sum(1)
+    torch.testing.assert_close(full["loss"].double(), (sse + kl).mean(), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(half["loss"].double(), (sse + 0.5 * kl).mean(), rtol=1e-5, atol=1e-5)

@@ -52,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--channels", type=_channels, default=None, metavar="C1,C2,C3,C4,C5",
                     help=f"encoder widths, multiples of 8 (default {','.join(map(str, VAEConfig().channels))})")
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    ap.add_argument("--kl-warmup-epochs", type=nonnegative_int, default=None,
+                    help="epochs over which the KL weight rises 0 -> 1 (default 0, the thesis; a small image "
+                         "set at 64 px wants ~10 against posterior collapse)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from checkpoints/last.pt")
     ap.add_argument("--no-progress", action="store_true")
     return ap
@@ -99,6 +102,7 @@ def main(argv=None) -> int:
             ap.error(f"--resume: {args.out / CHECKPOINT} holds weights only, not a train_vae checkpoint")
         meta = payload["meta"]
         saved = {"batch_size": meta["batch_size"], "lr": meta["lr"], "seed": meta["seed"],
+                 "kl_warmup_epochs": meta.get("kl_warmup_epochs", 0),
                  "channels": tuple(payload["config"]["channels"]), "epochs": payload["extra"]["epochs"]}
         for name, value in saved.items():
             given = getattr(args, name)
@@ -136,6 +140,7 @@ def main(argv=None) -> int:
         ap.error(f"--out {out} already holds a run; pass --resume to continue it or choose another directory")
     try:
         train_vae(images.dir, out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
+                  kl_warmup_epochs=args.kl_warmup_epochs or 0,
                   device=device, config=config, resume=args.resume, progress=not args.no_progress, log=tqdm.write)
     except KeyboardInterrupt:
         return 130

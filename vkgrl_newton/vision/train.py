@@ -12,6 +12,14 @@ be smaller), 400 epochs. A batch is read from the memory-mapped images.npy at so
 on the fly. The encoder sees the augmented image (`vision.augment`, Table 5.5), the decoder is
 trained to reproduce the CLEAN image; loss = `vae_loss` (eq. 4.48) with z sampled (eq. 4.44).
 
+KL warm-up (`kl_warmup_epochs`, 0 = none, the thesis's setting): the KL term's weight rises
+linearly from 0 to 1 over the first epochs, then the loss is eq. 4.48 as is. Measured on the
+quick preset's PegInsert set (64 x 64, 4 096 images, 20 epochs, no warm-up): the posterior
+collapsed (KL 0.002 nats, the decoder drew the mean image, linear-probe R^2 ~ 0 on every
+component): at 64 px the summed squared error is 16x smaller against the same KL than at the
+thesis's 256 px, and the socket is a few-pixel blob. The warm-up lets the encoder learn the
+geometry as a plain autoencoder first (a standard remedy, Bowman et al. 2016).
+
 Validation, after every epoch, on the set's VALIDATION split (whole episodes the training never
 saw, `vision.dataset`): clean images, no augmentation, and z = mu instead of a sample, so the
 validation loss is a deterministic function of the weights and comparable from epoch to epoch
@@ -88,7 +96,7 @@ BEST = "vae.pt"
 
 def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: float = 1e-3, seed: int = 0,
               device: str | torch.device = "cpu", config: VAEConfig | None = None, resume: bool = False,
-              progress: bool = True, log=print) -> dict:
+              progress: bool = True, log=print, kl_warmup_epochs: int = 0) -> dict:
     """Train a denoising VAE on the image set in `image_dir`, writing the run to `out_dir`.
 
     `epochs` is the total, counted from the start of the run (a resumed run trains the rest).
@@ -108,6 +116,8 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
         raise ValueError(f"train_vae: lr={lr!r}; allowed: a finite number > 0")
     if not (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0):
         raise ValueError(f"train_vae: seed={seed!r}; allowed: an integer >= 0")
+    if not (isinstance(kl_warmup_epochs, (int, np.integer)) and kl_warmup_epochs >= 0):
+        raise ValueError(f"train_vae: kl_warmup_epochs={kl_warmup_epochs!r}; allowed: an integer >= 0")
     epochs, batch_size, seed, lr = int(epochs), int(batch_size), int(seed), float(lr)
     device = torch.device(device)
     images = ImageSet(image_dir)
@@ -122,7 +132,7 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
                          "images; training needs at least 2 of each (collect it with val_fraction > 0)")
     meta = {"task": images.task, "image_dir": str(images.dir.resolve()), "image_count": len(images),
             "num_train": len(train_idx), "num_val": len(val_idx), "batch_size": batch_size, "lr": lr, "seed": seed,
-            "resolution": config.resolution, "latent_dim": config.latent_dim}
+            "resolution": config.resolution, "latent_dim": config.latent_dim, "kl_warmup_epochs": int(kl_warmup_epochs)}
 
     out = Path(out_dir)
     ckpt_path, best_path = out / CHECKPOINT, out / BEST
@@ -181,7 +191,10 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
                 idx = np.sort(order[start:start + batch_size])
                 clean = _read_batch(images.images, idx, device)
                 recon, mu, logvar = vae(augment(clean, noise_gen), noise_gen)  # encoder input: augmented
-                parts = vae_loss(recon, clean, mu, logvar)  # decoder target: the clean image
+                # KL warm-up: the weight rises linearly 0 -> 1 over the first kl_warmup_epochs, then
+                # eq. 4.48 as is; without it a small image set collapses the posterior (see below)
+                beta = min(1.0, (epoch - 1 + start / len(order)) / kl_warmup_epochs) if kl_warmup_epochs else 1.0
+                parts = vae_loss(recon, clean, mu, logvar, kl_weight=beta)  # decoder target: the clean image
                 opt.zero_grad(set_to_none=True)
                 parts["loss"].backward()
                 opt.step()

@@ -186,8 +186,8 @@ def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     return 0.5 * (mu.square() + logvar.exp() - logvar - 1.0).sum(-1)
 
 
-def vae_loss(recon: torch.Tensor, target: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor
-             ) -> dict[str, torch.Tensor]:
+def vae_loss(recon: torch.Tensor, target: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor,
+             kl_weight: float = 1.0) -> dict[str, torch.Tensor]:
     """The objective of eq. 4.48 and its parts, for a batch of N samples.
 
     recon, target: (N, ...) (the decoder output and the CLEAN image); mu, logvar: (N, d_z).
@@ -200,7 +200,7 @@ def vae_loss(recon: torch.Tensor, target: torch.Tensor, mu: torch.Tensor, logvar
     sq = (recon - target).square()
     recon_sum = sq.flatten(1).sum(1)  # (N,)
     kl = kl_divergence(mu, logvar)  # (N,)
-    loss = (recon_sum + kl).mean()
+    loss = (recon_sum + kl_weight * kl).mean()  # kl_weight 1: eq. 4.48 (< 1 only in a KL warm-up)
     return {"loss": loss, "recon": recon_sum.mean().detach(), "kl": kl.mean().detach(), "mse": sq.mean().detach()}
 
 
