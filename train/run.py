@@ -49,7 +49,7 @@ from vkgrl_newton.cli_types import positive_int  # noqa: E402
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_checkpoint  # noqa: E402
 from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
-from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, make_sac_config  # noqa: E402
+from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
@@ -204,8 +204,6 @@ def main(argv=None) -> int:
             if name not in given:
                 setattr(args, name, value)
         if not args.sac:
-            from vkgrl_newton.agents.sac import SACConfig
-
             args.sac_config = SACConfig(**meta["sac"])
     reason = unavailable(args)
     if reason is not None:
@@ -241,10 +239,20 @@ def main(argv=None) -> int:
         ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
     if args.vae is not None and not args.vae.is_file():
         ap.error(f"--vae {args.vae} does not exist; train one with train/train_vae.py or leave --vae out")
+    if args.vae is not None:
+        from vkgrl_newton.vision.vae import load_vae
+
+        try:  # the wrong task, a damaged file or not a VAE at all: stop before anything is built
+            load_vae(args.vae, expect={"task": args.task, "latent_dim": VISION_LATENT_DIM})
+        except ValueError as e:
+            ap.error(f"--vae: {e}")
     args.obs_dim = observation_dim(args.env, args.latent_dim) - (1 if args.no_time_obs else 0)
     if payload is not None:  # a foreign checkpoint stops here, before anything is built
         try:
-            check_meta(payload["meta"], run_meta(args, args.obs_dim, args.sac_config), ckpt_path)
+            saved = dict(payload["meta"])
+            # a checkpoint from before a SACConfig field existed holds that field's default
+            saved["sac"] = dataclasses.asdict(SACConfig(**saved["sac"]))
+            check_meta(saved, run_meta(args, args.obs_dim, args.sac_config), ckpt_path)
         except ValueError as e:
             ap.error(f"--resume: {e}")
     return train(args, run_dir, ckpt_path, payload)
@@ -263,8 +271,15 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     if uses_vision(args.method):
         from vkgrl_newton.vision.pipeline import VISION_PRESETS, load_or_make_encoder
 
-        encoder, _ = load_or_make_encoder(args.task, VISION_PRESETS[args.preset], args.cache_dir, args.device,
-                                          vae_path=args.vae, log=log, progress=not args.no_progress)
+        try:
+            encoder, _ = load_or_make_encoder(args.task, VISION_PRESETS[args.preset], args.cache_dir, args.device,
+                                              vae_path=args.vae, log=log, progress=not args.no_progress)
+        except (FileExistsError, FileNotFoundError, ValueError) as e:
+            print(f"train/run.py: the vision prerequisites: {e}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            log("interrupted while preparing the image set or the VAE; run again to continue")
+            return 130
         if encoder.latent_dim != args.latent_dim:
             raise SystemExit(f"train/run.py: the VAE's latent has {encoder.latent_dim} dimensions, the vision "
                              f"methods use {args.latent_dim} (thesis 5.6)")

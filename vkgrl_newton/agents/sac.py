@@ -32,7 +32,7 @@ class SACConfig:
     batch_size: int = 256
     lr: float = 4e-4
     # Counted in env transitions summed over worlds (one batched step of N worlds adds N), as
-    # SB3/SBX count num_timesteps; until then the caller acts with `warmup_actions`.
+    # SB3/SBX count num_timesteps; until then `explore` gives the warm-up actions.
     learning_starts: int = 5_000
     # Warm-up actions before learning_starts: "uniform" in [-1, 1] (SB3/SBX, the thesis's code),
     # or "policy": the untrained actor's samples (with actor_init_std, a small cloud around a = 0;

@@ -10,7 +10,6 @@ sim device (`TaskCamera.render_torch`: no host round trip on CUDA) and are encod
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import torch
 
@@ -28,18 +27,9 @@ class CameraLatent:
         self.camera = TaskCamera(env.model, self.spec, env.num_envs)
         self.encoder = encoder.to(env.tdev)
         self.batch = int(batch)
-        self.render_s = self.encode_s = 0.0  # accumulated wall time, for the throughput report
-        self.calls = 0
 
     @torch.no_grad()
     def __call__(self, env) -> torch.Tensor:
-        t0 = time.perf_counter()
         images = self.camera.render_torch(env.state_0, *env.hand_pose())  # uint8 (E, R, R, 3) view
-        t1 = time.perf_counter()
         z = torch.cat([self.encoder(images[i:i + self.batch]) for i in range(0, images.shape[0], self.batch)])
-        if z.device.type == "cuda":
-            torch.cuda.synchronize(z.device)  # honest timings; one sync per control step
-        self.render_s += t1 - t0
-        self.encode_s += time.perf_counter() - t1
-        self.calls += 1
-        return z.to(env.tdev)
+        return z.to(env.tdev)  # timings: python -m vkgrl_newton.vision.bench

@@ -4,9 +4,11 @@
 
 1. the image set (`vision.collect`): cache/<task>/images_r<R>_n<N>_seed<S>/, collected into a
    temporary sibling directory and renamed when complete, so an interrupted collection leaves no
-   half set under the final name (a stale temporary directory of ours is removed and redone);
+   half set under the final name (a stale temporary directory of ours is removed and redone; two
+   runs that start on an empty cache at once must not share it: prepare it with one run first);
 2. the VAE (`vision.train`): cache/<task>/vae_r<R>_n<N>_e<E>_seed<S>/vae.pt; a VAE run that was
-   interrupted (checkpoints/last.pt but no metrics.json) is resumed, not restarted;
+   interrupted after its first epoch (checkpoints/last.pt but no metrics.json) is resumed, one
+   stopped inside its first epoch restarted;
 3. the frozen encoder (`FrozenEncoder`) of that vae.pt, checked against task and resolution.
 
 Presets: `thesis` as Tables 5.5-5.6 (256 x 256, 130,000 images, 400 epochs: a GPU job);
@@ -69,6 +71,8 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
         vae_path = vae_dir / "vae.pt"
         if not (vae_dir / "metrics.json").is_file():
             resume = (vae_dir / "checkpoints" / "last.pt").is_file()
+            if vae_dir.exists() and not resume:  # ours, stopped inside its first epoch: start over
+                shutil.rmtree(vae_dir)
             log(f"{'resuming' if resume else 'training'} the denoising VAE ({preset.vae_epochs} epochs) -> {vae_dir}")
             train_vae(image_dir, vae_dir, epochs=preset.vae_epochs, seed=preset.seed, device=device, resume=resume,
                       progress=progress, log=log)

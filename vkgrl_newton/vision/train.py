@@ -266,6 +266,7 @@ def _check_resume(payload: dict, meta: dict, config: VAEConfig, device: torch.de
     if payload.get("extra") is None or payload.get("optimizer") is None or payload.get("epoch") is None:
         raise ValueError(f"cannot resume from {path}: it holds weights only, not a training checkpoint of train_vae")
     saved = {k: v for k, v in payload["meta"].items() if k != "image_dir"}
+    saved.setdefault("kl_warmup_epochs", 0)  # written before the option existed
     check_meta(saved, {k: v for k, v in meta.items() if k != "image_dir"}, path)
     if payload["config"] != dataclasses.asdict(config):
         check_meta({"config": payload["config"]}, {"config": dataclasses.asdict(config)}, path)
