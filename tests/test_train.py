@@ -280,6 +280,23 @@ def test_env_vision_slot_follows_the_state(wp_cpu):
         torch.testing.assert_close(obs[:, -3:], env.tcp_pose()[0])
         torch.testing.assert_close(obs[:, 1:4], env.tcp_pose()[0] - env.target_frame_pos_w)
     assert calls == [0, 1, 2, 3]
+    # across a time-out: the final observation shows the last state, the returned one the reset state
+    outputs = []
+
+    def recording_source(e):
+        outputs.append((int(e.episode_length_buf[0]), e.tcp_pose()[0].clone()))
+        return outputs[-1][1]
+
+    env.attach_vision(recording_source)
+    while True:
+        obs, _, dones, extras = env.step(torch.zeros(2, 4))
+        if bool(dones.all()):
+            break
+    (k_final, z_final), (k_reset, z_reset) = outputs[-2:]
+    assert (k_final, k_reset) == (env.max_episode_length, 0)
+    torch.testing.assert_close(extras["final_observations"]["policy"][:, -3:], z_final)
+    torch.testing.assert_close(obs["policy"][:, -3:], z_reset)
+    assert (z_final - z_reset).abs().max() > 1e-3  # the reset moved the hand
     with pytest.raises(ValueError, match="vision_latent_dim"):
         AssemblyEnv.attach_vision(type("E", (), {"cfg": EnvConfig(num_envs=1)})(), source)
 
