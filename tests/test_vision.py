@@ -1,7 +1,7 @@
 """Tests of the vision package (vkgrl_newton.vision) on the CPU, each against a reference written
 independently of the code under test: torch.distributions and a Monte-Carlo estimate for the KL,
 eq. 4.48 by hand, exact flips and scipy's Gaussian filter for the augmentations, binomial bounds
-for their probabilities, sklearn's Ridge for the probe."""
+for their probabilities, the ridge normal equations for the probe."""
 
 from __future__ import annotations
 
@@ -367,13 +367,14 @@ def test_linear_probe():
     a, b = g.normal(size=(8, 3)), g.normal(size=3)
     out = linear_probe(zt, zt @ a + b, torch.from_numpy(zv), zv @ a + b)
     assert out["r2"].shape == (3,) and (out["r2"] > 0.9999).all()
-    # against sklearn's Ridge: alpha = n * ridge for our mean-squared-error penalty
-    linear_model = pytest.importorskip("sklearn.linear_model")
+    # against the ridge normal equations in float64: penalty ridge ||W||^2 against the MEAN
+    # squared error, unpenalized bias (centred data)
     yt = zt @ a + b + g.normal(size=(2000, 3))
     out = linear_probe(zt, yt, zv, zv @ a + b, ridge=0.5)
-    ref = linear_model.Ridge(alpha=0.5 * 2000).fit(zt, yt)
-    np.testing.assert_allclose(out["weight"], ref.coef_.T, rtol=1e-8, atol=1e-10)
-    np.testing.assert_allclose(out["bias"], ref.intercept_, rtol=1e-8, atol=1e-10)
+    zc, yc = zt - zt.mean(0), yt - yt.mean(0)
+    w_ref = np.linalg.solve(zc.T @ zc + 0.5 * 2000 * np.eye(8), zc.T @ yc)
+    np.testing.assert_allclose(out["weight"], w_ref, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(out["bias"], yt.mean(0) - zt.mean(0) @ w_ref, rtol=1e-8, atol=1e-10)
     # an independent target: nothing to read
     r = linear_probe(zt, g.normal(size=2000), zv, g.normal(size=1000))["r2"]
     assert r.shape == (1,) and abs(r[0]) < 0.05

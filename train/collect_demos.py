@@ -19,6 +19,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from vkgrl_newton.cli_types import positive_int  # noqa: E402
+
 from vkgrl_newton.envs.assembly_env import FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
 from vkgrl_newton.envs.demonstrations import record_demonstrations  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
@@ -29,7 +31,7 @@ def main(argv=None) -> int:
     ap.add_argument("--task", default="PegInsert", choices=sorted(TASKS))
     ap.add_argument("--env", default="factory", choices=FAMILIES)
     ap.add_argument("--num-demos", type=int, default=16)
-    ap.add_argument("--num-envs", type=int, default=16)
+    ap.add_argument("--num-envs", type=positive_int, default=16)
     ap.add_argument("--max-episodes", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None)
@@ -37,8 +39,6 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.num_demos < 2:
         ap.error("--num-demos must be >= 2 (a distribution needs several demonstrations)")
-    if args.num_envs < 1:
-        ap.error("--num-envs must be >= 1")
     if args.out.exists():
         ap.error(f"--out {args.out} exists; demonstrations are never overwritten")
 

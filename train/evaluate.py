@@ -27,6 +27,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from vkgrl_newton.cli_types import positive_int  # noqa: E402
+
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,  # noqa: E402
                                             ZeroPolicy, evaluate, write_video)
@@ -44,8 +46,8 @@ def main(argv=None) -> int:
     ap.add_argument("--action-dim", type=int, default=6, choices=ACTION_DIMS)
     ap.add_argument("--policy", default="scripted", choices=POLICIES)
     ap.add_argument("--checkpoint", type=Path, default=None, help="a train/run.py checkpoint (replaces --policy)")
-    ap.add_argument("--num-envs", type=int, default=16)
-    ap.add_argument("--episodes", type=int, default=2)
+    ap.add_argument("--num-envs", type=positive_int, default=16)
+    ap.add_argument("--episodes", type=positive_int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--solver", default="mujoco", choices=SOLVERS)
@@ -55,10 +57,6 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
     ap.add_argument("--video", type=Path, default=None, help="GIF of the task camera (first 4 worlds, tiled)")
     args = ap.parse_args(argv)
-    if args.num_envs < 1:
-        ap.error("--num-envs must be >= 1")
-    if args.episodes < 1:
-        ap.error("--episodes must be >= 1")
     for name in ("json", "video"):
         out = getattr(args, name)
         if out is not None and out.exists():

@@ -237,14 +237,12 @@ def main(argv=None) -> int:
     args.latent_dim = VISION_LATENT_DIM if uses_vision(args.method) else 0
     if args.vae is not None and not uses_vision(args.method):
         ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
-    if args.vae is not None and not args.vae.is_file():
-        ap.error(f"--vae {args.vae} does not exist; train one with train/train_vae.py or leave --vae out")
     if args.vae is not None:
         from vkgrl_newton.vision.vae import load_vae
 
-        try:  # the wrong task, a damaged file or not a VAE at all: stop before anything is built
+        try:  # missing, the wrong task, damaged or not a VAE at all: stop before anything is built
             load_vae(args.vae, expect={"task": args.task, "latent_dim": VISION_LATENT_DIM})
-        except ValueError as e:
+        except (FileNotFoundError, ValueError) as e:
             ap.error(f"--vae: {e}")
     args.obs_dim = observation_dim(args.env, args.latent_dim) - (1 if args.no_time_obs else 0)
     if payload is not None:  # a foreign checkpoint stops here, before anything is built

@@ -15,6 +15,8 @@ metrics of train/evaluate.py's JSON; `record_video` renders the task camera alon
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import math
 import time
 
@@ -33,15 +35,16 @@ def policy_observation(obs, time_obs: bool = True) -> torch.Tensor:
     return x if time_obs else x[:, 1:]
 
 
-class Policy:
+class Policy(ABC):
     """Base of the evaluation policies: `reset` is called at every episode start (nothing to do
     unless the policy keeps per-episode state), `step` drives the env one control step."""
 
     def reset(self, env) -> None:
         return None
 
+    @abstractmethod
     def step(self, env, obs):
-        raise NotImplementedError
+        """One control step: returns what the env's step returns (obs, rewards, dones, extras)."""
 
 
 class ScriptedPolicy(Policy):

@@ -32,4 +32,4 @@ class CameraLatent:
     def __call__(self, env) -> torch.Tensor:
         images = self.camera.render_torch(env.state_0, *env.hand_pose())  # uint8 (E, R, R, 3) view
         z = torch.cat([self.encoder(images[i:i + self.batch]) for i in range(0, images.shape[0], self.batch)])
-        return z.to(env.tdev)  # timings: python -m vkgrl_newton.vision.bench
+        return z  # on env.tdev, where the encoder is; timings: python -m vkgrl_newton.vision.bench

@@ -2,8 +2,8 @@
 
 Not in the thesis, which judges the VAE by its reconstructions and the RL results; here it is
 the check that the encoder mean (eq. 4.49) carries the relative target pose the policy needs.
-Per target column, a ridge-regularized affine map latent -> target is fitted in closed form on
-the training images and scored on the validation images by
+Per target column, a ridge-regularized affine map latent -> target is fitted (scikit-learn's
+Ridge) on the training images and scored on the validation images by
 
     R^2 = 1 - SS_res / SS_tot,   SS_res = sum (y - y_hat)^2,   SS_tot = sum (y - mean(y))^2
 
@@ -14,6 +14,8 @@ mean, below 0 worse. A yaw target is whatever columns the caller passes (the ang
 from __future__ import annotations
 
 import numpy as np
+from sklearn.linear_model import LinearRegression, Ridge
+from sklearn.metrics import r2_score
 
 __all__ = ["linear_probe"]
 
@@ -47,21 +49,15 @@ def linear_probe(latent_train, target_train, latent_val, target_val, ridge: floa
                          f"and val {zv.shape, yv.shape}")
     if zt.shape[0] < 2 or zv.shape[0] < 2:
         raise ValueError("linear_probe: needs at least 2 training and 2 validation rows")
-    n, d = zt.shape
-    # Centring takes the unpenalized bias out; the penalty then enters as d extra rows
-    # sqrt(n ridge) I -> 0 of a least-squares system (better conditioned than the normal
-    # equations, and ridge = 0 gives the minimum-norm solution).
-    z_mean, y_mean = zt.mean(0), yt.mean(0)
-    a = np.vstack([zt - z_mean, np.sqrt(n * ridge) * np.eye(d)])
-    b = np.vstack([yt - y_mean, np.zeros((d, yt.shape[1]))])
-    weight = np.linalg.lstsq(a, b, rcond=None)[0]
-    bias = y_mean - z_mean @ weight
-    return {"r2": _r2(yv, zv @ weight + bias), "r2_train": _r2(yt, zt @ weight + bias), "weight": weight, "bias": bias}
+    n = zt.shape[0]
+    # sklearn's Ridge penalizes alpha ||W||^2 against the SUM of squared errors: alpha = n * ridge;
+    # the bias is fitted and not penalized
+    model = (Ridge(alpha=n * ridge) if ridge > 0 else LinearRegression()).fit(zt, yt)
+    weight, bias = model.coef_.T.copy(), np.asarray(model.intercept_, dtype=np.float64)
+    return {"r2": _r2(yv, model.predict(zv)), "r2_train": _r2(yt, model.predict(zt)), "weight": weight, "bias": bias}
 
 
 def _r2(y: np.ndarray, y_hat: np.ndarray) -> np.ndarray:
-    """Per column; nan for a constant column (SS_tot = 0: R^2 undefined)."""
-    ss_res = ((y - y_hat) ** 2).sum(0)
-    ss_tot = ((y - y.mean(0)) ** 2).sum(0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(ss_tot > 0, 1.0 - ss_res / np.where(ss_tot > 0, ss_tot, 1.0), np.nan)
+    """Per column; nan for a constant column (R^2 undefined there)."""
+    r2 = r2_score(y, y_hat, multioutput="raw_values", force_finite=False)
+    return np.where(np.isfinite(r2), r2, np.nan)
