@@ -11,6 +11,10 @@ import newton_usd_schemas  # noqa: F401
 
 ASSET_DIR = Path(__file__).resolve().parent
 FRANKA_USD = ASSET_DIR / "franka_panda.usda"
-TASK_USD = {"PegInsert": ASSET_DIR / "peg_insert.usda"}
+TASK_USD = {
+    "PegInsert": ASSET_DIR / "peg_insert.usda",
+    "GearMesh": ASSET_DIR / "gear_mesh.usda",
+    "NutThread": ASSET_DIR / "nut_thread.usda",
+}
 
 __all__ = ["ASSET_DIR", "FRANKA_USD", "TASK_USD"]

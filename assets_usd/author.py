@@ -157,12 +157,67 @@ TABLE_POS = (0.55, 0.0, -0.02)
 PART_FRICTION = 0.75
 SOCKET_FRICTION = 0.6
 
+# GearMesh parts (reference/isaaclab_factory_facts.md section 2; geometry of
+# reference/threads_gears_cpu_facts.md section 3, measured to block, slide and mesh on CPU).
+# Frame of the gear base ("assembled coordinates", as Factory): origin at the base plate's bottom
+# on the base's x axis, z up; the gears sit on the plate (z 5..25 mm); the medium shaft is at
+# x = +20.25 mm (Factory's offset). Module 2 mm, straight box teeth 0.5 mm slimmer per side than
+# half the circular pitch. Tooth counts 9 / 19 / 29 (tip diameters 22 / 42 / 62 mm: Factory's
+# small and medium gears measure 22 and 41.9 mm) put the small and large shafts 28 and 48 mm from
+# the medium one (Factory's meshes: 30.5 and 50.5 mm with their own tooth form).
+GEAR_MODULE = 0.002
+GEAR_TEETH = {"small": 9, "medium": 19, "large": 29}
+GEAR_BASE_HEIGHT = 0.005  # plate thickness = the gears' bottom
+GEAR_HEIGHT = 0.020  # tooth face width; the fixed tip (medium shaft top) is at 0.025
+GEAR_MEDIUM_X = 0.02025  # Factory's medium-shaft offset along the base x
+GEAR_TOOTH_CLEARANCE = 0.0005  # per flank
+GEAR_SHAFT_RADIUS = 0.005
+GEAR_BORE_APOTHEM = 0.0052  # 12-gon bore of the held gear: 0.2 mm radial play on the shaft
+GEAR_BORE_SEGMENTS = 12
+GEAR_HUB_RADIUS = 0.010  # grip hub on top of the held gear (z 25..45 mm): the fingers hold it
+GEAR_HUB_TOP = 0.045
+GEAR_MEDIUM_MASS = 0.012  # Factory
+# NutThread parts: an M16 x 2 bolt and nut (Factory: bolt base_height 0.01, height 0.025, nut
+# 24 mm across flats, 0.01 tall, 0.03 kg). Threads as helices of capsules (reference/
+# threads_gears_cpu_facts.md section 1: 2.00 mm per turn on MuJoCo-Warp): bolt centreline r 7.3 mm,
+# nut r 7.7 mm, capsule radius 0.45 mm, 24 chords per turn, right-hand. Only where the two can meet
+# is threaded: the bolt's top THREAD_BOLT_TURNS turns and the nut's bottom THREAD_NUT_TURNS turns
+# (the task ends 1.5 pitches below the bolt tip; the wrist turns less than a revolution).
+THREAD_PITCH = 0.002
+BOLT_HEAD_HALF = (0.012, 0.012, 0.005)  # head 24 x 24 x 10 mm below the shank, z 0..10 mm
+BOLT_BASE_HEIGHT = 0.010
+BOLT_SHANK_HEIGHT = 0.025  # tip at z = 0.035
+BOLT_CORE_RADIUS = 0.0070  # 0.25 mm inside the nut ridge: the play stays under the 0.5 mm ridge overlap
+THREAD_BOLT_RADIUS = 0.0073
+THREAD_NUT_RADIUS = 0.0077
+THREAD_CAPSULE_RADIUS = 0.00045
+THREAD_CHORDS_PER_TURN = 24
+THREAD_BOLT_TOP = 0.0335  # the bolt thread's upper end, 1.5 mm under the tip (a lead-in on the core)
+THREAD_BOLT_TURNS = 3
+THREAD_NUT_BOTTOM = 0.0005  # the nut thread's lower end above the nut's bottom face
+THREAD_NUT_TURNS = 2
+NUT_ACROSS_FLATS = 0.024
+NUT_BORE_APOTHEM = 0.0080  # hex bore flats, 0.25 mm outside the bolt ridge (r 7.75 mm)
+NUT_HEIGHT = 0.010
+NUT_MASS = 0.03
+# Friction: MuJoCo (and so Newton's SolverMuJoCo) takes the larger coefficient of a pair, PhysX
+# the mean. Factory sets the nut 0.01 and everything else 0.75; its own comment puts the effective
+# nut-bolt value at 0.25. Here the nut is 0.01 and the bolt 0.25: nut on bolt 0.25, nut in the
+# fingers 0.75 (the grip turns it), peg and gear parts as PegInsert.
+NUT_FRICTION = 0.01
+BOLT_FRICTION = 0.25
+
 COLORS = {
     "link": (0.92, 0.92, 0.92),
     "hand": (0.2, 0.2, 0.22),
     "pad": (0.1, 0.1, 0.1),
     "peg": (0.95, 0.5, 0.1),
     "socket": (0.15, 0.35, 0.8),
+    "gear_base": (0.15, 0.35, 0.8),
+    "gear_fixed": (0.2, 0.55, 0.3),
+    "gear_held": (0.95, 0.5, 0.1),
+    "bolt": (0.15, 0.35, 0.8),
+    "nut": (0.95, 0.5, 0.1),
     "table": (0.55, 0.4, 0.25),
 }
 
@@ -501,7 +556,211 @@ def author_peg_insert() -> Usd.Stage:
     return stage
 
 
-STAGES = {FRANKA_FILE: author_franka, PEG_INSERT_FILE: author_peg_insert}
+# ---------------------------------------------------------------------------------------------
+# GearMesh
+
+
+def _yaw_wxyz(angle: float) -> tuple[float, float, float, float]:
+    return (math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2))
+
+
+def gear_tooth_width() -> float:
+    """Tangential width of a box tooth: half the circular pitch less the clearance per flank, m."""
+    return math.pi * GEAR_MODULE / 2 - 2 * GEAR_TOOTH_CLEARANCE
+
+
+def gear_centres() -> dict[str, tuple[float, float]]:
+    """Shaft positions (x, y) in the gear-base frame: the neighbours at the meshing centre distances."""
+    r_p = {name: GEAR_MODULE * z / 2 for name, z in GEAR_TEETH.items()}
+    return {
+        "medium": (GEAR_MEDIUM_X, 0.0),
+        "small": (GEAR_MEDIUM_X + r_p["medium"] + r_p["small"], 0.0),
+        "large": (GEAR_MEDIUM_X - r_p["medium"] - r_p["large"], 0.0),
+    }
+
+
+def gear_teeth(name: str, r_in: float, centre=(0.0, 0.0)) -> list[tuple[str, BoxPiece]]:
+    """Box teeth of gear `name`, tooth k at angle 2 pi k / z from the frame's +x, radially r_in .. tip.
+
+    Phase 0 for all three gears meshes them with the medium gear at yaw 0 in the base frame: the
+    medium (19, odd) has a tooth towards +x (the small gear) and a gap towards -x (the large);
+    the small (9) has a gap towards -x, the large (29) a tooth towards +x.
+    """
+    z = GEAR_TEETH[name]
+    r_tip = GEAR_MODULE * z / 2 + GEAR_MODULE
+    half = ((r_tip - r_in) / 2, gear_tooth_width() / 2, GEAR_HEIGHT / 2)
+    rc = (r_tip + r_in) / 2
+    zc = GEAR_BASE_HEIGHT + GEAR_HEIGHT / 2
+    pieces = []
+    for k in range(z):
+        a = 2 * math.pi * k / z
+        pieces.append((f"tooth_{k:02d}", BoxPiece(half, (centre[0] + rc * math.cos(a), centre[1] + rc * math.sin(a), zc),
+                                                 _yaw_wxyz(a))))
+    return pieces
+
+
+def gear_root_radius(name: str) -> float:
+    return GEAR_MODULE * GEAR_TEETH[name] / 2 - 1.25 * GEAR_MODULE
+
+
+def gear_bore_pieces() -> list[tuple[str, BoxPiece]]:
+    """The held gear's bore: a 12-gon ring of boxes, inner faces at GEAR_BORE_APOTHEM, 2 mm thick."""
+    t = 0.002
+    n = GEAR_BORE_SEGMENTS
+    half_tan = (GEAR_BORE_APOTHEM + t) * math.tan(math.pi / n)
+    rc = GEAR_BORE_APOTHEM + t / 2
+    zc = GEAR_BASE_HEIGHT + GEAR_HEIGHT / 2
+    pieces = []
+    for k in range(n):
+        a = 2 * math.pi * (k + 0.5) / n
+        pieces.append((f"bore_{k:02d}", BoxPiece((t / 2, half_tan, GEAR_HEIGHT / 2),
+                                                 (rc * math.cos(a), rc * math.sin(a), zc), _yaw_wxyz(a))))
+    return pieces
+
+
+def _cylinder(stage, path, radius, z0, z1, centre=(0.0, 0.0), color=(0.5, 0.5, 0.5), material=None):
+    cyl = UsdGeom.Cylinder.Define(stage, path)
+    cyl.CreateAxisAttr(UsdGeom.Tokens.z)
+    cyl.CreateRadiusAttr(radius)
+    cyl.CreateHeightAttr(z1 - z0)
+    _set_pose(cyl, (centre[0], centre[1], (z0 + z1) / 2))
+    cyl.CreateDisplayColorAttr([Gf.Vec3f(*color)])
+    _collider(cyl.GetPrim(), material)
+    return cyl
+
+
+def author_gear_mesh() -> Usd.Stage:
+    root = "/gear_mesh"
+    stage = _new_stage("gear_mesh")
+    part_material = _material(stage, f"{root}/materials/part", PART_FRICTION)
+    _box(stage, f"{root}/table/top", TABLE_HALF, TABLE_POS, color=COLORS["table"], material=part_material)
+
+    # the fixed asset: base plate, the medium shaft (a capsule: its round top leads the bore in)
+    # and the two flanking gears, all static under one frame the simulator moves per reset. The
+    # flanking gears do not turn (Factory's are free bodies resting on their shafts): for
+    # inserting the medium gear what matters is that their teeth block it unless it is aligned.
+    base = UsdGeom.Xform.Define(stage, f"{root}/gear_base")
+    _set_pose(base, SOCKET_NOMINAL_POS)
+    base.GetPrim().SetCustomDataByKey("vkgrl:role", "fixed_asset")
+    centres = gear_centres()
+    x_lo = centres["large"][0] - GEAR_MODULE * (GEAR_TEETH["large"] / 2 + 1) - 0.004
+    x_hi = centres["small"][0] + GEAR_MODULE * (GEAR_TEETH["small"] / 2 + 1) + 0.004
+    y_half = GEAR_MODULE * (GEAR_TEETH["large"] / 2 + 1) + 0.004
+    _box(stage, f"{root}/gear_base/plate", ((x_hi - x_lo) / 2, y_half, GEAR_BASE_HEIGHT / 2),
+         ((x_hi + x_lo) / 2, 0.0, GEAR_BASE_HEIGHT / 2), color=COLORS["gear_base"], material=part_material)
+    shaft_top = GEAR_BASE_HEIGHT + GEAR_HEIGHT - 0.0005  # under the held gear's hub when seated
+    _capsule(stage, f"{root}/gear_base/shaft", (centres["medium"][0], 0.0, 0.0),
+             (centres["medium"][0], 0.0, shaft_top - GEAR_SHAFT_RADIUS), GEAR_SHAFT_RADIUS, COLORS["gear_base"],
+             part_material)
+    for name in ("small", "large"):
+        c = centres[name]
+        r_root = gear_root_radius(name)
+        _cylinder(stage, f"{root}/gear_base/{name}_core", r_root, GEAR_BASE_HEIGHT, GEAR_BASE_HEIGHT + GEAR_HEIGHT,
+                  c, COLORS["gear_fixed"], part_material)
+        for tooth, piece in gear_teeth(name, r_root - 0.0005, c):
+            _box(stage, f"{root}/gear_base/{name}_{tooth}", piece.half, piece.pos, piece.quat_wxyz,
+                 color=COLORS["gear_fixed"], material=part_material)
+
+    # the held asset: the medium gear, origin on its axis at the base plate's bottom level (so it
+    # coincides with the target frame, base + (GEAR_MEDIUM_X, 0, 0), when seated), bore + spoke
+    # teeth + a grip hub above the teeth
+    gear = UsdGeom.Xform.Define(stage, f"{root}/medium_gear")
+    _set_pose(gear, (SOCKET_NOMINAL_POS[0] + GEAR_MEDIUM_X, SOCKET_NOMINAL_POS[1], SOCKET_NOMINAL_POS[2] + 0.03))
+    gear.GetPrim().SetCustomDataByKey("vkgrl:role", "held_asset")
+    UsdPhysics.RigidBodyAPI.Apply(gear.GetPrim())
+    r_tip = GEAR_MODULE * (GEAR_TEETH["medium"] / 2 + 1)
+    m = GEAR_MEDIUM_MASS
+    i_axial = 0.5 * m * r_tip**2
+    i_trans = m * (3 * r_tip**2 + GEAR_HEIGHT**2) / 12
+    _mass(gear.GetPrim(), m, (0.0, 0.0, GEAR_BASE_HEIGHT + GEAR_HEIGHT / 2), (i_trans, i_trans, i_axial, 0.0, 0.0, 0.0))
+    for name, piece in gear_bore_pieces() + gear_teeth("medium", GEAR_BORE_APOTHEM + 0.0018):
+        _box(stage, f"{root}/medium_gear/{name}", piece.half, piece.pos, piece.quat_wxyz, color=COLORS["gear_held"],
+             material=part_material)
+    _cylinder(stage, f"{root}/medium_gear/hub", GEAR_HUB_RADIUS, GEAR_BASE_HEIGHT + GEAR_HEIGHT, GEAR_HUB_TOP,
+              color=COLORS["gear_held"], material=part_material)
+    return stage
+
+
+# ---------------------------------------------------------------------------------------------
+# NutThread
+
+
+def helix_points(radius: float, z_start: float, turns: float, theta_start: float = 0.0) -> np.ndarray:
+    """(n + 1, 3) points of a right-hand helix: z rises by THREAD_PITCH per counter-clockwise turn."""
+    n = int(round(turns * THREAD_CHORDS_PER_TURN))
+    theta = theta_start + 2 * math.pi * np.arange(n + 1) / THREAD_CHORDS_PER_TURN
+    z = z_start + THREAD_PITCH * (theta - theta_start) / (2 * math.pi)
+    return np.column_stack([radius * np.cos(theta), radius * np.sin(theta), z])
+
+
+def bolt_thread_points() -> np.ndarray:
+    """The bolt ridge's centreline, ending (top) at THREAD_BOLT_TOP on the bolt frame's +x."""
+    return helix_points(THREAD_BOLT_RADIUS, THREAD_BOLT_TOP - THREAD_BOLT_TURNS * THREAD_PITCH, THREAD_BOLT_TURNS)
+
+
+def nut_thread_points() -> np.ndarray:
+    """The nut ridge's centreline in the nut frame, starting (bottom) on the nut frame's +x."""
+    return helix_points(THREAD_NUT_RADIUS, THREAD_NUT_BOTTOM, THREAD_NUT_TURNS)
+
+
+def nut_hex_pieces() -> list[tuple[str, BoxPiece]]:
+    """Six boxes forming the hex nut, flats facing +-y (and 60 deg on), bore flats at NUT_BORE_APOTHEM."""
+    t = NUT_ACROSS_FLATS / 2 - NUT_BORE_APOTHEM
+    half_tan = NUT_ACROSS_FLATS / 2 * math.tan(math.pi / 6)
+    rc = NUT_BORE_APOTHEM + t / 2
+    pieces = []
+    for k in range(6):
+        a = math.pi / 6 + k * math.pi / 3
+        pieces.append((f"hex_{k}", BoxPiece((t / 2, half_tan, NUT_HEIGHT / 2),
+                                            (rc * math.cos(a), rc * math.sin(a), NUT_HEIGHT / 2), _yaw_wxyz(a))))
+    return pieces
+
+
+def author_nut_thread() -> Usd.Stage:
+    root = "/nut_thread"
+    stage = _new_stage("nut_thread")
+    part_material = _material(stage, f"{root}/materials/part", PART_FRICTION)
+    bolt_material = _material(stage, f"{root}/materials/bolt", BOLT_FRICTION)
+    nut_material = _material(stage, f"{root}/materials/nut", NUT_FRICTION)
+    _box(stage, f"{root}/table/top", TABLE_HALF, TABLE_POS, color=COLORS["table"], material=part_material)
+
+    # the fixed asset: head, core (a capsule: its round top leads the nut on) and the thread
+    bolt = UsdGeom.Xform.Define(stage, f"{root}/bolt")
+    _set_pose(bolt, SOCKET_NOMINAL_POS)
+    bolt.GetPrim().SetCustomDataByKey("vkgrl:role", "fixed_asset")
+    _box(stage, f"{root}/bolt/head", BOLT_HEAD_HALF, (0.0, 0.0, BOLT_HEAD_HALF[2]), color=COLORS["bolt"],
+         material=bolt_material)
+    tip = BOLT_BASE_HEIGHT + BOLT_SHANK_HEIGHT
+    _capsule(stage, f"{root}/bolt/core", (0.0, 0.0, BOLT_BASE_HEIGHT), (0.0, 0.0, tip - BOLT_CORE_RADIUS),
+             BOLT_CORE_RADIUS, COLORS["bolt"], bolt_material)
+    pts = bolt_thread_points()
+    for k in range(len(pts) - 1):
+        _capsule(stage, f"{root}/bolt/thread_{k:03d}", pts[k], pts[k + 1], THREAD_CAPSULE_RADIUS, COLORS["bolt"],
+                 bolt_material)
+
+    # the held asset: the nut, origin on its axis at its bottom face
+    nut = UsdGeom.Xform.Define(stage, f"{root}/nut")
+    _set_pose(nut, (SOCKET_NOMINAL_POS[0], SOCKET_NOMINAL_POS[1], SOCKET_NOMINAL_POS[2] + tip + 0.015))
+    nut.GetPrim().SetCustomDataByKey("vkgrl:role", "held_asset")
+    UsdPhysics.RigidBodyAPI.Apply(nut.GetPrim())
+    # inertia of a hex ring ~ a thick cylinder r 8.3 .. 13 mm (reference facts: diag(2, 2, 3.3)e-6)
+    _mass(nut.GetPrim(), NUT_MASS, (0.0, 0.0, NUT_HEIGHT / 2), (2.0e-6, 2.0e-6, 3.3e-6, 0.0, 0.0, 0.0))
+    for name, piece in nut_hex_pieces():
+        _box(stage, f"{root}/nut/{name}", piece.half, piece.pos, piece.quat_wxyz, color=COLORS["nut"],
+             material=nut_material)
+    pts = nut_thread_points()
+    for k in range(len(pts) - 1):
+        _capsule(stage, f"{root}/nut/thread_{k:03d}", pts[k], pts[k + 1], THREAD_CAPSULE_RADIUS, COLORS["nut"],
+                 nut_material)
+    return stage
+
+
+GEAR_MESH_FILE = "gear_mesh.usda"
+NUT_THREAD_FILE = "nut_thread.usda"
+# the prim (under the stage's root) holding each task's fixed asset; its shapes are static
+FIXED_ASSET_PRIM = {"PegInsert": "socket", "GearMesh": "gear_base", "NutThread": "bolt"}
+STAGES = {FRANKA_FILE: author_franka, PEG_INSERT_FILE: author_peg_insert, GEAR_MESH_FILE: author_gear_mesh,
+          NUT_THREAD_FILE: author_nut_thread}
 
 
 def stage_text(stage: Usd.Stage) -> str:

@@ -25,7 +25,7 @@ import warp as wp
 import newton
 
 from ..assets_usd import FRANKA_USD, TASK_USD
-from ..assets_usd.author import SOCKET_NOMINAL_POS  # authored pose of the socket frame
+from ..assets_usd.author import FIXED_ASSET_PRIM, SOCKET_NOMINAL_POS  # authored pose of the fixed-asset frame
 from ..tasks import DECIMATION, SIM_DT, get_task
 
 __all__ = ["SimConfig", "Scene", "build_scene", "default_device", "SOLVERS"]
@@ -164,11 +164,12 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
         "hand": _find(bodies, "/hand"),
         "left_finger": _find(bodies, "/left_finger"),
         "right_finger": _find(bodies, "/right_finger"),
-        "held": next(i for i, lbl in enumerate(bodies) if lbl.startswith(f"/{_stage_root(task)}/")),
+        "held": next(i for i, lbl in enumerate(bodies) if lbl.startswith(f"/{stage_root(task)}/")),
         "tcp_site": _find(shapes, "/hand/tcp"),
     }
     finger_bodies = {info["left_finger"], info["right_finger"]}
-    robot_bodies = {i for i, lbl in enumerate(bodies) if not lbl.startswith(f"/{_stage_root(task)}/")}
+    fixed_prefix = f"/{stage_root(task)}/{FIXED_ASSET_PRIM[task]}/"
+    robot_bodies = {i for i, lbl in enumerate(bodies) if not lbl.startswith(f"/{stage_root(task)}/")}
     collide = int(newton.ShapeFlags.COLLIDE_SHAPES)
     pads, socket, group = [], [], []
     for s, lbl in enumerate(shapes):
@@ -181,21 +182,16 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
             # only the finger pads touch the parts (design.md); the rest of the arm is visual here
             builder.shape_flags[s] &= ~collide
             continue
-        if builder.shape_flags[s] & collide:
-            builder.shape_material_ke[s] = config.contact_ke
-            builder.shape_material_kd[s] = config.contact_kd
-            builder.shape_gap[s] = config.contact_gap
-            builder.shape_material_mu_torsional[s] = 0.0
-            builder.shape_material_mu_rolling[s] = 0.0
+        apply_contact_settings(builder, s, config)
         if is_pad:
             pads.append(s)
             group.append(s)
         elif body == info["held"]:
             group.append(s)
-        elif body == -1 and "/socket/" in lbl:
+        elif body == -1 and fixed_prefix in lbl:
             socket.append(s)
     if not pads or not socket:
-        raise ValueError(f"stage for {task!r}: found {len(pads)} finger pads and {len(socket)} socket shapes")
+        raise ValueError(f"stage for {task!r}: found {len(pads)} finger pads and {len(socket)} fixed-asset shapes")
     info.update(pads=pads, socket=socket, group=group)
 
     tcp_xform = builder.shape_transform[info["tcp_site"]]
@@ -207,7 +203,17 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
     return builder, info
 
 
-def _stage_root(task: str) -> str:
+def apply_contact_settings(builder: newton.ModelBuilder, shape: int, config: SimConfig) -> None:
+    """This project's contact parameters on one colliding shape (no torsional or rolling friction)."""
+    if builder.shape_flags[shape] & int(newton.ShapeFlags.COLLIDE_SHAPES):
+        builder.shape_material_ke[shape] = config.contact_ke
+        builder.shape_material_kd[shape] = config.contact_kd
+        builder.shape_gap[shape] = config.contact_gap
+        builder.shape_material_mu_torsional[shape] = 0.0
+        builder.shape_material_mu_rolling[shape] = 0.0
+
+
+def stage_root(task: str) -> str:
     """The default prim name of a task stage (PegInsert -> peg_insert)."""
     return "".join("_" + c.lower() if c.isupper() else c for c in task).lstrip("_")
 

@@ -1,0 +1,193 @@
+"""GearMesh and NutThread parts: what the stages hold, checked against the published facts and
+brute-force geometry, and what the contact geometry does in the solver (vkgrl_newton.sim.parts).
+
+References: reference/isaaclab_factory_facts.md section 2 (masses, M16 x 2, 24 mm across flats,
+the medium shaft's offset), a plan-view polygon test of the gear teeth written here, and the
+helix written out in float64 from the pitch.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from vkgrl_newton.assets_usd import author
+
+M16_PITCH = 0.002
+MEDIUM_SHAFT_X = 0.02025
+
+
+@pytest.fixture(scope="module")
+def gear_model(wp_cpu):
+    from vkgrl_newton.sim.parts import build_parts
+
+    return build_parts("GearMesh", num_worlds=2)
+
+
+@pytest.fixture(scope="module")
+def nut_model(wp_cpu):
+    from vkgrl_newton.sim.parts import build_parts
+    from vkgrl_newton.sim.scene import SimConfig
+
+    return build_parts("NutThread", num_worlds=1, config=SimConfig(num_worlds=1, device="cpu", nconmax=1024,
+                                                                    njmax=4096))
+
+
+def _shapes(model, prefix):
+    return [i for i, lbl in enumerate(model.shape_label) if lbl.startswith(prefix)]
+
+
+# ------------------------------------------------------------------ stage contents
+
+
+def test_gear_stage_parts(gear_model):
+    m = gear_model.model
+    labels = list(m.shape_label)
+    per_world = len(labels) // 2
+    labels = labels[:per_world]
+    held = [lbl for lbl in labels if lbl.startswith("/gear_mesh/medium_gear/")]
+    assert sum("/tooth_" in lbl for lbl in held) == 19
+    assert sum("/bore_" in lbl for lbl in held) == 12
+    assert sum(lbl.startswith("/gear_mesh/gear_base/small_tooth") for lbl in labels) == 9
+    assert sum(lbl.startswith("/gear_mesh/gear_base/large_tooth") for lbl in labels) == 29
+    body_mass = m.body_mass.numpy()
+    assert body_mass[gear_model.held_body] == pytest.approx(0.012, rel=1e-6)  # Factory's medium gear
+    # every fixed-asset shape is static; the held gear's shapes are on its body
+    shape_body = m.shape_body.numpy()
+    for i, lbl in enumerate(labels):
+        if lbl.startswith("/gear_mesh/gear_base/"):
+            assert shape_body[i] == -1, lbl
+        if lbl.startswith("/gear_mesh/medium_gear/"):
+            assert shape_body[i] == gear_model.held_body, lbl
+    # the medium shaft sits at Factory's offset in the base frame
+    tf = m.shape_transform.numpy()
+    shaft = labels.index("/gear_mesh/gear_base/shaft")
+    assert tf[shaft][0] - author.SOCKET_NOMINAL_POS[0] == pytest.approx(MEDIUM_SHAFT_X, abs=1e-6)  # float32
+
+
+def test_nut_stage_parts(nut_model):
+    m = nut_model.model
+    labels = list(m.shape_label)
+    assert m.body_mass.numpy()[nut_model.held_body] == pytest.approx(0.03, rel=1e-6)  # Factory's M16 nut
+    nut_thread = [i for i, lbl in enumerate(labels) if lbl.startswith("/nut_thread/nut/thread_")]
+    bolt_thread = [i for i, lbl in enumerate(labels) if lbl.startswith("/nut_thread/bolt/thread_")]
+    assert len(nut_thread) == author.THREAD_NUT_TURNS * 24 and len(bolt_thread) == author.THREAD_BOLT_TURNS * 24
+    # the hex: six flats 24 mm across (outer faces at 12 mm from the axis)
+    hexes = [i for i, lbl in enumerate(labels) if lbl.startswith("/nut_thread/nut/hex_")]
+    tf, scale = m.shape_transform.numpy(), m.shape_scale.numpy()
+    for i in hexes:
+        r_centre = math.hypot(tf[i][0], tf[i][1])
+        assert r_centre + scale[i][0] == pytest.approx(0.012, abs=1e-6)
+
+
+def test_bolt_thread_is_an_m16x2_right_hand_helix(nut_model):
+    """Capsule centres of the bolt thread, in the bolt frame, lie on a helix rising 2 mm per
+    counter-clockwise turn (right hand) at the authored radius (the chord midpoints sag inwards by
+    r (1 - cos(pi / 24)))."""
+    m = nut_model.model
+    labels = list(m.shape_label)
+    tf = m.shape_transform.numpy()
+    idx = [i for i, lbl in enumerate(labels) if lbl.startswith("/nut_thread/bolt/thread_")]
+    c = np.array([tf[i][:3] for i in idx], dtype=np.float64) - np.array(author.SOCKET_NOMINAL_POS)
+    theta = np.unwrap(np.arctan2(c[:, 1], c[:, 0]))
+    slope = np.polyfit(theta / (2 * math.pi), c[:, 2], 1)[0]
+    assert slope == pytest.approx(M16_PITCH, rel=1e-4)
+    r = np.hypot(c[:, 0], c[:, 1])
+    np.testing.assert_allclose(r, author.THREAD_BOLT_RADIUS * math.cos(math.pi / 24), rtol=1e-5)
+
+
+def _tooth_polygons(pieces, yaw=0.0, centre=(0.0, 0.0)):
+    polys = []
+    c, s = math.cos(yaw), math.sin(yaw)
+    for _, p in pieces:
+        hx, hy, _ = p.half
+        w, _, _, qz = p.quat_wxyz
+        a = 2 * math.atan2(qz, w)
+        corners = np.array([[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]])
+        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        pts = corners @ rot.T + np.array(p.pos[:2])
+        pts = pts @ np.array([[c, -s], [s, c]]).T + np.array(centre)
+        polys.append(pts)
+    return polys
+
+
+def _separated(a, b) -> bool:
+    """Separating-axis test for two convex polygons (float64): True if they do not overlap."""
+    for poly in (a, b):
+        for k in range(len(poly)):
+            e = poly[(k + 1) % len(poly)] - poly[k]
+            n = np.array([-e[1], e[0]])
+            pa, pb = a @ n, b @ n
+            if pa.max() < pb.min() or pb.max() < pa.min():
+                return True
+    return False
+
+
+def test_gear_teeth_mesh_only_when_aligned():
+    """Plan view, brute force over all tooth pairs: at yaw 0 the medium gear's teeth clear both
+    neighbours' teeth and cores; turned by half a tooth pitch some tooth overlaps a neighbour's."""
+    centres = author.gear_centres()
+    neighbours = []
+    for name in ("small", "large"):
+        neighbours += _tooth_polygons(author.gear_teeth(name, author.gear_root_radius(name) - 0.0005, centres[name]))
+    pitch = 2 * math.pi / 19
+
+    def clashes(yaw):
+        medium = _tooth_polygons(author.gear_teeth("medium", author.GEAR_BORE_APOTHEM + 0.0018), yaw,
+                                 centres["medium"])
+        n = sum(not _separated(a, b) for a in medium for b in neighbours)
+        # cores: the tooth corners must stay outside the neighbours' root circles
+        for name in ("small", "large"):
+            r_core = author.gear_root_radius(name)
+            for poly in medium:
+                n += int(np.any(np.hypot(*(poly - np.array(centres[name])).T) < r_core))
+        return n
+
+    assert clashes(0.0) == 0
+    for k in (-1, 1, 5):
+        assert clashes(k * pitch) == 0  # any whole tooth pitch meshes too
+    assert clashes(pitch / 2) > 0
+    assert clashes(0.25 * pitch) > 0
+
+
+# ------------------------------------------------------------------ physics (MuJoCo-Warp on CPU)
+
+
+def test_nut_advances_one_pitch_per_turn(nut_model):
+    """Started resting on the bolt's top thread turn and turned clockwise under a 0.5 N push, the
+    nut screws down 2 mm per turn (Factory's M16 x 2) within 10 %, without tilting off the thread."""
+    from vkgrl_newton.sim.parts import advance_per_turn, nut_rest_height, run_drive
+
+    yaw0 = math.pi / 2
+    r = run_drive(nut_model, (0.0, 0.0, nut_rest_height(yaw0)), yaw0, 0.8, force_z=-0.5,
+                  omega_des=-2 * math.pi, torque_kd=1e-3)
+    turns = (yaw0 - r.yaw[-1, 0]) / (2 * math.pi)
+    assert turns > 0.4  # it turned, clockwise
+    assert advance_per_turn(r) == pytest.approx(M16_PITCH, rel=0.1)
+    assert r.tilt.max() < math.radians(5.0)
+    # and it stays on the axis (radial play 0.25 mm by design, author.py)
+    assert np.hypot(r.pos[-1, 0, 0], r.pos[-1, 0, 1]) < 0.0005
+
+
+def test_nut_does_not_descend_without_turning(nut_model):
+    from vkgrl_newton.sim.parts import nut_rest_height, run_drive
+
+    yaw0 = math.pi / 2
+    z0 = nut_rest_height(yaw0)
+    r = run_drive(nut_model, (0.0, 0.0, z0), yaw0, 0.3, force_z=-0.5)
+    assert abs(r.yaw[-1, 0] - yaw0) < math.radians(3.0)
+    assert r.pos[-1, 0, 2] > z0 - 0.0003  # settles by less than the thread clearance
+
+
+def test_gear_slides_when_aligned_and_is_blocked_when_not(gear_model):
+    """Pushed down (1 N) from above its shaft: at yaw 0 (teeth facing the neighbours' gaps) the
+    medium gear seats on the base plate; turned by half a tooth pitch it rests on the neighbours'
+    tooth tops, one face width (20 mm) higher."""
+    from vkgrl_newton.sim.parts import run_drive
+
+    pitch = 2 * math.pi / 19
+    r = run_drive(gear_model, (MEDIUM_SHAFT_X, 0.0, 0.03), [0.0, pitch / 2], 0.4, force_z=-1.0)
+    z_aligned, z_blocked = r.pos[-1, 0, 2], r.pos[-1, 1, 2]
+    assert abs(z_aligned) < 0.0005  # seated: origin at the base frame's level
+    assert z_blocked == pytest.approx(author.GEAR_HEIGHT, abs=0.0005)
+    assert np.hypot(r.pos[-1, 0, 0] - MEDIUM_SHAFT_X, r.pos[-1, 0, 1]) < 0.0005
