@@ -27,10 +27,8 @@ def gear_model(wp_cpu):
 @pytest.fixture(scope="module")
 def nut_model(wp_cpu):
     from vkgrl_newton.sim.parts import build_parts
-    from vkgrl_newton.sim.scene import SimConfig
 
-    return build_parts("NutThread", num_worlds=1, config=SimConfig(num_worlds=1, device="cpu", nconmax=1024,
-                                                                    njmax=4096))
+    return build_parts("NutThread", num_worlds=1)
 
 
 def _shapes(model, prefix):

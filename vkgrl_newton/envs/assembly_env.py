@@ -101,20 +101,47 @@ MAX_LIN_VEL, MAX_ANG_VEL = 20.0, 200.0  # beyond these a world counts as blown u
 
 @dataclass(frozen=True)
 class TaskGeometry:
-    """Held/fixed part facts the env needs (reference/isaaclab_factory_facts.md sections 2, 7, 8)."""
+    """Held/fixed part facts the env needs (reference/isaaclab_factory_facts.md sections 2, 6-8).
+
+    Frames: the held part's origin is on its axis (peg and nut: bottom face; gear: the base
+    plate's bottom level, 5 mm under its teeth, Factory's "assembled coordinates"); the target
+    base is where that origin is when assembled, `target_offset` in the fixed part's (yawed)
+    frame; the fixed tip (observation and action frame) is (target_offset x, y, fixed_height).
+    """
 
     fixed_height: float  # m, fixed tip above the fixed part's origin
     held_in_tcp: float  # m, held origin below the TCP along the gripper axis
     held_pos_noise: tuple[float, float, float]  # in-hand noise half-ranges, held frame
-    success_z: float  # m, seated threshold
+    success_z: float  # m, seated threshold (held origin above the target base)
     success_xy: float  # m, centring threshold
     finger_open: float  # m per finger at reset
     finger_grip_target: float  # m, drive target giving ~20 N squeeze at contact
+    target_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m, target base in the fixed frame
+    held_bottom: float = 0.0  # m, the held part's lowest face above its origin
+    # Factory's NutThread: success also needs the TCP yaw (XYZ Euler, wrapped to (-125, 235] deg)
+    # below this (rad), i.e. the nut turned; None: no yaw condition
+    success_tcp_yaw_max: float | None = None
+    unidirectional_yaw: bool = False  # Factory's NutThread: the yaw action turns clockwise only
 
 
+# Finger pads touch a round part of radius r at q = r - 0.883 mm (measured on the 7.986 mm peg:
+# q = 3.11 mm); the drive target 10 mm further in squeezes with ke 2000 N/m * 10 mm = 20 N.
+# Fingers open to Factory's held diameter / 2 * 1.25 (facts 7.1).
+_PAD = 0.000883
 TASK_GEOMETRY = {
-    # Peg pads touch the 7.986 mm peg at q = 3.11 mm; ke 2000 N/m * 10 mm = 20 N
     "PegInsert": TaskGeometry(0.025, 0.032392, (0.003, 0.0, 0.003), 0.04 * 0.025, 0.0025, 0.00499, 0.00311 - 0.010),
+    # the fingers hold the gear's hub (r 10 mm, z 25..45 mm): TCP 29 mm above the origin, so the
+    # pads stay above the teeth (z <= 25 mm) over the +-3 mm in-hand noise
+    "GearMesh": TaskGeometry(
+        fixed_height=0.025, held_in_tcp=0.029, held_pos_noise=(0.003, 0.0, 0.003), success_z=0.05 * 0.020,
+        success_xy=0.0025, finger_open=0.03 / 2 * 1.25, finger_grip_target=0.010 - _PAD - 0.010,
+        target_offset=(0.02025, 0.0, 0.0), held_bottom=0.005),
+    # the nut's bottom face level with the fingertips; the pads close on two flats (24 mm);
+    # target base 1.5 pitches under the bolt tip (0.035)
+    "NutThread": TaskGeometry(
+        fixed_height=0.035, held_in_tcp=0.0, held_pos_noise=(0.0, 0.003, 0.003), success_z=0.375 * 0.002,
+        success_xy=0.0025, finger_open=0.024 / 2 * 1.25, finger_grip_target=0.012 - _PAD - 0.010,
+        target_offset=(0.0, 0.0, 0.035 - 1.5 * 0.002), success_tcp_yaw_max=0.0, unidirectional_yaw=True),
 }
 
 
@@ -234,6 +261,8 @@ class AssemblyEnv(VecEnv):
         self.origins = torch.tensor(scene.env_origins, dtype=torch.float32, device=tdev)
         self.fixed_pos_w, self.fixed_yaw = z(E, 3), z(E)  # fixed part origin (world) and yaw
         self.target_frame_pos_w = z(E, 3)  # fixed tip + observation noise: the frame of obs and actions
+        self.fixed_tip_w = z(E, 3)  # fixed tip, no noise
+        self.target_base_w = z(E, 3)  # where the held origin is when assembled
         self.ref_quat_w = quat_from_euler_xyz(torch.tensor(math.pi), torch.tensor(0.0),
                                               torch.tensor(self.task.psi_ref)).float().to(tdev).expand(E, 4).contiguous()
         self.actions_applied = z(E, cfg.action_dim)
@@ -439,7 +468,13 @@ class AssemblyEnv(VecEnv):
                                                              local[None, :, :3].expand(n, ns, 3))
         q = quat_mul(q_yaw[:, None, :].expand(n, ns, 4), local[None, :, 3:].expand(n, ns, 4))
         self.shape_transform[self.socket_shapes[mask].reshape(-1)] = torch.cat((p, q), -1).reshape(-1, 7)
-        tip = self.fixed_pos_w[mask] + torch.tensor((0.0, 0.0, self.geometry.fixed_height), device=self.tdev)
+        geo = self.geometry
+        ox, oy, oz = geo.target_offset
+        local = torch.tensor(((ox, oy, oz), (ox, oy, geo.fixed_height)), device=self.tdev)  # base, tip
+        world = quat_rotate(q_yaw[:, None, :].expand(n, 2, 4), local[None].expand(n, 2, 3))
+        self.target_base_w[mask] = self.fixed_pos_w[mask] + world[:, 0]
+        tip = self.fixed_pos_w[mask] + world[:, 1]
+        self.fixed_tip_w[mask] = tip
         noise = TARGET_OBS_NOISE * torch.randn(n, 3, device=self.tdev, generator=self.generator)
         self.target_frame_pos_w[mask] = tip + noise
 
@@ -502,7 +537,7 @@ class AssemblyEnv(VecEnv):
             self._randomize_held_mass(mask)
 
         # hand target above the fixed tip (facts 7.5), IK with retries from the reset posture
-        tip = self.fixed_pos_w[mask] + torch.tensor((0.0, 0.0, geo.fixed_height), device=self.tdev)
+        tip = self.fixed_tip_w[mask]
         todo = torch.ones(n, dtype=torch.bool, device=self.tdev)
         hand_pos = torch.zeros(n, 3, device=self.tdev)
         hand_quat = torch.zeros(n, 4, device=self.tdev)
@@ -646,6 +681,8 @@ class AssemblyEnv(VecEnv):
             rot[:, 2] = a[:, 3] * self.rot_scale[:, 2]
         else:
             rot = a[:, 3:6] * self.rot_scale
+        if self.geometry.unidirectional_yaw:  # Factory NutThread: a_yaw in [-1, 1] -> [-1, 0], clockwise only
+            rot[:, 2] = -(a[:, -1] + 1.0) * 0.5 * self.rot_scale[:, 2]
         quat = quat_mul(quat_exp(rot), tcp_q)
         return pos, quat
 
@@ -694,8 +731,13 @@ class AssemblyEnv(VecEnv):
             fresh = torch.rand(self.num_envs, 1, device=self.tdev, generator=self.generator) * self.dead_zone_max
             self.dead_zone.copy_(torch.where(redraw, fresh, self.dead_zone))
         held_p, _ = self.held_pose()
-        d = held_p - self.fixed_pos_w
+        d = held_p - self.target_base_w
         success = (d[:, :2].norm(dim=-1) < self.geometry.success_xy) & (d[:, 2] < self.geometry.success_z)
+        if self.geometry.success_tcp_yaw_max is not None:
+            _, _, tcp_yaw = euler_xyz_from_quat(self.tcp_pose()[1])
+            tcp_yaw = torch.remainder(tcp_yaw, 2 * math.pi)  # Factory's Euler yaw is in [0, 2 pi), then wrap_yaw:
+            tcp_yaw = torch.where(tcp_yaw > math.radians(235.0), tcp_yaw - 2 * math.pi, tcp_yaw)  # (-125, 235] deg
+            success = success & (tcp_yaw < self.geometry.success_tcp_yaw_max)
         self.success = success
         newly = success & (self.first_success_step < 0)
         self.first_success_step[newly] = self.episode_length_buf[newly]

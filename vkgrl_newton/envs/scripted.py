@@ -45,10 +45,13 @@ from dataclasses import dataclass
 
 import torch
 
+from ..assets_usd.author import GEAR_TEETH
 from ..kmp.pose import (euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from_euler_xyz, quat_log, quat_mul,
                         quat_rotate)
 
 __all__ = ["ScriptedInserter", "ScriptedParams"]
+
+GEAR_TEETH_MEDIUM = GEAR_TEETH["medium"]  # the held gear's teeth: its yaw symmetry
 
 APPROACH, ALIGN, DESCEND, ALIGN_ENTRY, INSERT = range(5)
 
@@ -84,6 +87,7 @@ class ScriptedParams:
     retry_after_s: float = 0.6  # s the part may rest on the fixed tip before a retry
     retry_height: float = 0.003  # m above the fixed tip
     start_delay_steps: tuple[int, int] = (0, 4)  # control steps of waiting at the start
+    turn_time_s: tuple[float, float] = (3.0, 4.0)  # NutThread: s of the screwing turn to psi_ref
 
 
 class ScriptedInserter:
@@ -127,6 +131,11 @@ class ScriptedInserter:
         self.inside = torch.zeros(n, dtype=torch.bool, device=dev)
         _, _, yaw = euler_xyz_from_quat(tcp_q)
         self.yaw0 = yaw.clone()
+        _, _, held_yaw = euler_xyz_from_quat(env.held_pose()[1])
+        d = held_yaw - yaw
+        self.held_yaw_offset = torch.atan2(torch.sin(d), torch.cos(d))
+        self.t_turn = self._u(n, p.turn_time_s, dev)
+        self.turn_t0 = torch.full((n,), -1.0, device=dev)
 
     def _start_segment(self, mask, goal, duration, t):
         # torch.where, not boolean indexing: no device-to-host sync per control step on CUDA
@@ -157,8 +166,8 @@ class ScriptedInserter:
         dt = env.scene.config.sim_dt * env.scene.config.decimation
         t = env.episode_length_buf.float() * dt
         held_p, _ = env.held_pose()
-        fixed = env.fixed_pos_w  # true hole bottom on the axis (privileged)
-        tip_z = fixed[:, 2] + env.geometry.fixed_height
+        fixed = env.target_base_w  # where the held origin goes: the hole bottom, gear seat, nut target (privileged)
+        tip_z = env.fixed_tip_w[:, 2] - env.geometry.held_bottom  # held origin with its bottom at the fixed tip
 
         def on_axis(height):
             goal = fixed.clone()
@@ -202,11 +211,7 @@ class ScriptedInserter:
         self.inside = inside
         self.bias *= torch.where(inside, p.bias_release, 1.0).unsqueeze(-1)
 
-        # yaw turns to psi_ref along the approach segment (same minimum-jerk timing)
-        s_yaw = torch.where(self.phase == APPROACH, self._progress(t), torch.ones_like(t))
-        s_yaw = torch.where(self.started, s_yaw, torch.zeros_like(t))
-        d_yaw = torch.atan2(torch.sin(env.task.psi_ref - self.yaw0), torch.cos(env.task.psi_ref - self.yaw0))
-        yaw = self.yaw0 + d_yaw * s_yaw
+        yaw = self._yaw(env, t, held_p, tip_z)
         quat = quat_from_euler_xyz(torch.full_like(yaw, math.pi), torch.zeros_like(yaw), yaw)
         # the grasp offset turned by the hand's measured orientation: a wrist tilted inside Forge's
         # torque dead zone (roll and pitch not commandable in 4D) would otherwise put the part bottom
@@ -214,6 +219,35 @@ class ScriptedInserter:
         offset_q = torch.where(self.inside.unsqueeze(-1), quat, env.tcp_pose()[1]) if p.tilt_feedforward else quat
         cmd_pos = self._reference(t) + quat_rotate(offset_q, self.offset_tcp) + self.bias
         return self._invert_controller(env, cmd_pos, quat)
+
+    def _yaw(self, env, t, held_p, tip_z):
+        """The gripper yaw this step.
+
+        PegInsert: to psi_ref along the approach segment (same minimum-jerk timing). GearMesh: to
+        the yaw nearest psi_ref at which the held gear's teeth face the fixed gears' gaps (its
+        yaw relative to the base a multiple of the tooth pitch; the in-hand yaw offset is
+        measured at reset). NutThread: held during the approach; once the nut is on the thread
+        (its bottom 1 mm under the bolt tip), a minimum-jerk turn to psi_ref over `turn_time_s`,
+        clockwise, which screws it in.
+        """
+        task = env.cfg.task
+        if task == "NutThread":
+            on_thread = (self.phase == INSERT) & (held_p[:, 2] < tip_z - 0.001) & (self.turn_t0 < 0)
+            self.turn_t0 = torch.where(on_thread, t, self.turn_t0)
+            tau = torch.where(self.turn_t0 >= 0, ((t - self.turn_t0) / self.t_turn).clamp(0.0, 1.0),
+                              torch.zeros_like(t))
+            s_yaw = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau**2)
+            return self.yaw0 + (env.task.psi_ref - self.yaw0) * s_yaw  # no wrap: the turn is clockwise
+        goal = torch.full_like(self.yaw0, env.task.psi_ref)
+        if task == "GearMesh":
+            pitch = 2 * math.pi / GEAR_TEETH_MEDIUM
+            # gear yaw = tcp yaw + held_yaw_offset; mesh when gear yaw - base yaw = k * pitch
+            free = goal + self.held_yaw_offset - env.fixed_yaw
+            goal = env.fixed_yaw + torch.round(free / pitch) * pitch - self.held_yaw_offset
+        s_yaw = torch.where(self.phase == APPROACH, self._progress(t), torch.ones_like(t))
+        s_yaw = torch.where(self.started, s_yaw, torch.zeros_like(t))
+        d_yaw = torch.atan2(torch.sin(goal - self.yaw0), torch.cos(goal - self.yaw0))
+        return self.yaw0 + d_yaw * s_yaw
 
     def _invert_controller(self, env, pos, quat):
         """The pose command under which the env's OSC applies the demonstrator's own impedance.

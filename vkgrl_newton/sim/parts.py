@@ -30,7 +30,7 @@ import newton
 
 from ..assets_usd import TASK_USD
 from ..assets_usd.author import SOCKET_NOMINAL_POS
-from .scene import SimConfig, apply_contact_settings, stage_root
+from .scene import SimConfig, apply_contact_settings, contact_limits, stage_root
 
 __all__ = ["PartsSim", "build_parts", "DriveResult", "run_drive"]
 
@@ -86,9 +86,10 @@ def run_drive(sim: PartsSim, start_pos, start_yaw, duration: float, force_z: flo
     nw = sim.num_worlds
     start_pos = np.broadcast_to(np.asarray(start_pos, dtype=np.float64), (nw, 3))
     start_yaw = np.broadcast_to(np.asarray(start_yaw, dtype=np.float64), (nw,))
+    nconmax, njmax = contact_limits(sim.task, cfg)
     solver = newton.solvers.SolverMuJoCo(model, use_mujoco_contacts=False, solver="newton", integrator="implicitfast",
-                                         cone="elliptic", impratio=cfg.impratio, njmax=cfg.njmax, nconmax=cfg.nconmax)
-    pipeline = newton.CollisionPipeline(model, rigid_contact_max=cfg.nconmax * nw, broad_phase="explicit")
+                                         cone="elliptic", impratio=cfg.impratio, njmax=njmax, nconmax=nconmax)
+    pipeline = newton.CollisionPipeline(model, rigid_contact_max=nconmax * nw, broad_phase="explicit")
     s0, s1, control = model.state(), model.state(), model.control()
     contacts = pipeline.contacts()
 
@@ -163,7 +164,7 @@ def main(argv=None) -> int:
     if args.task == "NutThread":
         from ..assets_usd.author import THREAD_BOLT_TOP, THREAD_NUT_BOTTOM, THREAD_PITCH
 
-        sim = build_parts("NutThread", config=SimConfig(num_worlds=1, device="cpu", nconmax=1024, njmax=4096))
+        sim = build_parts("NutThread")
         r = run_drive(sim, (0.0, 0.0, nut_rest_height(math.pi / 2)), math.pi / 2, 1.0, force_z=-0.5, omega_des=-2 * math.pi, torque_kd=1e-3)
         print(f"turns {-r.yaw[-1, 0] / (2 * math.pi):.2f}, dz {1e3 * (r.pos[-1, 0, 2] - r.pos[0, 0, 2]):.2f} mm, "
               f"advance {1e3 * advance_per_turn(r):.3f} mm/turn, max tilt {math.degrees(r.tilt.max()):.2f} deg, "

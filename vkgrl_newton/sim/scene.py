@@ -57,8 +57,10 @@ class SimConfig:
     contact_ke: float = 4.0e4  # N/m -> MuJoCo solref timeconst 5 ms, damping ratio 1
     contact_kd: float = 400.0
     impratio: float = 10.0  # cuts the peg's creep along the fingers from ~1.5 mm to 0.12 mm
-    nconmax: int = 256  # contacts per world (about 130 during an insertion)
-    njmax: int = 1024  # constraint rows per world
+    # contacts and constraint rows per world; None: the task's (TASK_CONTACT_LIMITS: about 130
+    # contacts during a peg insertion, a few hundred with the nut on its capsule thread)
+    nconmax: int | None = None
+    njmax: int | None = None
     robot_usd: str | None = None  # a user's own robot stage (same body/joint names); None: the bundled Franka
 
     def __post_init__(self):
@@ -68,6 +70,10 @@ class SimConfig:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if not isinstance(self.substeps, int) or self.substeps < 1:
             raise ValueError(f"substeps must be an integer >= 1, got {self.substeps!r}")
+        for name in ("nconmax", "njmax"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, int) or v < 1):
+                raise ValueError(f"{name} must be None or an integer >= 1, got {v!r}")
         for name in ("contact_gap", "contact_ke", "contact_kd", "impratio"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
@@ -85,6 +91,17 @@ class SimConfig:
     @property
     def decimation(self) -> int:
         return DECIMATION
+
+
+# (nconmax, njmax) per world when SimConfig leaves them None
+TASK_CONTACT_LIMITS = {"PegInsert": (256, 1024), "GearMesh": (256, 1024), "NutThread": (1024, 4096)}
+
+
+def contact_limits(task: str, config: SimConfig) -> tuple[int, int]:
+    """(nconmax, njmax) per world: the config's, or the task's default where it gives None."""
+    nconmax, njmax = TASK_CONTACT_LIMITS[task]
+    return (config.nconmax if config.nconmax is not None else nconmax,
+            config.njmax if config.njmax is not None else njmax)
 
 
 @dataclass
@@ -297,7 +314,8 @@ def make_solver(scene: Scene):
     """The configured solver and a collision pipeline producing its contacts."""
     model = scene.model
     nw = scene.num_worlds
-    pipeline = newton.CollisionPipeline(model, rigid_contact_max=scene.config.nconmax * nw, broad_phase="explicit")
+    nconmax, njmax = contact_limits(scene.task, scene.config)
+    pipeline = newton.CollisionPipeline(model, rigid_contact_max=nconmax * nw, broad_phase="explicit")
     if scene.config.solver == "mujoco":
         solver = newton.solvers.SolverMuJoCo(
             model,
@@ -306,8 +324,8 @@ def make_solver(scene: Scene):
             integrator="implicitfast",
             cone="elliptic",
             impratio=scene.config.impratio,
-            njmax=scene.config.njmax,
-            nconmax=scene.config.nconmax,
+            njmax=njmax,
+            nconmax=nconmax,
         )
     else:
         solver = newton.solvers.SolverSteel(model)

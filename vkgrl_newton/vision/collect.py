@@ -72,9 +72,7 @@ class CollectConfig:
 def relative_target_state(env) -> torch.Tensor:
     """(E, 4): the fixed tip relative to the TCP in the TCP frame (x, y, z, m) and the relative yaw."""
     tcp_p, tcp_q = env.tcp_pose()
-    tip = env.fixed_pos_w.clone()
-    tip[:, 2] += env.geometry.fixed_height
-    rel = quat_rotate(quat_conjugate(tcp_q), tip - tcp_p)
+    rel = quat_rotate(quat_conjugate(tcp_q), env.fixed_tip_w - tcp_p)
     _, _, tcp_yaw = euler_xyz_from_quat(tcp_q)
     d_yaw = env.fixed_yaw - tcp_yaw
     d_yaw = torch.atan2(torch.sin(d_yaw), torch.cos(d_yaw))
