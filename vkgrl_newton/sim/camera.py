@@ -50,11 +50,15 @@ class CameraSpec:
 # Thesis Table 5.6. PegInsert's "roll -20" is applied as a 20 degree tilt of the optical axis
 # back toward the gripper axis (about the hand y axis): rendered literally, about the optical x
 # axis, a camera 8 cm beside the hand looks past the fingers at the bare table (checked), and the
-# thesis's images show the gripper and the parts.
+# thesis's images show the gripper and the parts. GearMesh and NutThread: "(0, 0, 0.05), yaw 90"
+# puts the camera inside this project's hand hull (a box down to 0.06 m along the hand z; it
+# renders black), so it sits 0.065 m along the hand z instead, just under the hand between the
+# fingers, looking down the gripper axis: the held gear's teeth and the fixed gears around its
+# hub, or the bolt through the nut's bore (docs/images/gear_mesh_camera.png, nut_thread_camera.png).
 TASK_CAMERAS = {
     "PegInsert": CameraSpec(pos_hand=(0.08, 0.0, 0.0), rpy_deg=(0.0, -20.0, 0.0)),
-    "GearMesh": CameraSpec(pos_hand=(0.0, 0.0, 0.05), rpy_deg=(0.0, 0.0, 90.0)),
-    "NutThread": CameraSpec(pos_hand=(0.0, 0.0, 0.05), rpy_deg=(0.0, 0.0, 90.0)),
+    "GearMesh": CameraSpec(pos_hand=(0.0, 0.0, 0.065), rpy_deg=(0.0, 0.0, 90.0)),
+    "NutThread": CameraSpec(pos_hand=(0.0, 0.0, 0.065), rpy_deg=(0.0, 0.0, 90.0)),
 }
 
 # optical frame (+z forward, -y up) -> Newton camera frame (-Z forward, +Y up): pi about x
