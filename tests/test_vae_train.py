@@ -202,6 +202,20 @@ def test_cli_trains_and_resumes(cli, image_dir, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main([*common, "--resume", "--batch-size", "32"])
     assert exc.value.code == 2 and "--batch-size 32" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        cli.main([*common, "--resume", "--no-group-norm"])
+    assert exc.value.code == 2 and "--no-group-norm" in capsys.readouterr().err
+    # the quick preset's settings through the CLI
+    out2 = tmp_path / "cli_quick"
+    assert cli.main(["--images", str(image_dir), "--out", str(out2), "--device", "cpu", "--no-progress", "--epochs",
+                     "1", "--batch-size", "16", "--channels", "8,16,16,32,32", "--kl-weight", "0.01",
+                     "--no-group-norm"]) == 0
+    metrics = json.loads((out2 / "metrics.json").read_text())
+    assert metrics["config"]["group_norm"] is False
+    from vkgrl_newton.vision.vae import load_vae
+
+    _, payload = load_vae(out2 / "vae.pt")
+    assert payload["meta"]["kl_weight"] == 0.01
 
 
 @pytest.mark.parametrize("argv,flag", [
@@ -235,6 +249,34 @@ def test_cli_images_is_required_and_out_is_never_reused(cli, image_dir, straight
         cli.main(["--images", str(image_dir), "--out", str(straight[0]), "--epochs", "1", "--device", "cpu"])
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "--out" in err and str(straight[0]) in err
+
+
+@pytest.mark.parametrize("value", [0.0, -0.5, float("nan"), float("inf"), True])
+def test_kl_weight_must_be_a_positive_finite_number(image_dir, tmp_path, value):
+    with pytest.raises(ValueError, match="kl_weight"):
+        train_vae(image_dir, tmp_path / "run", epochs=1, kl_weight=value)
+    assert not (tmp_path / "run").exists()
+
+
+def test_kl_weight_scales_the_trained_kl_and_is_part_of_the_run(image_dir, tmp_path, monkeypatch):
+    """The weight reaches vae_loss in every training batch, and a resume with another weight is refused."""
+    import vkgrl_newton.vision.train as vt
+
+    seen = []
+    real = vt.vae_loss
+
+    def spy(*args, kl_weight=1.0, **kwargs):
+        seen.append(kl_weight)
+        return real(*args, kl_weight=kl_weight, **kwargs)
+
+    monkeypatch.setattr(vt, "vae_loss", spy)
+    out = tmp_path / "klw"
+    metrics = train_vae(image_dir, out, epochs=1, kl_weight=0.25, **TRAIN)
+    assert seen and all(w == 0.25 for w in seen)
+    monkeypatch.setattr(vt, "vae_loss", real)
+    with pytest.raises(ValueError, match="kl_weight"):
+        train_vae(image_dir, out, epochs=2, resume=True, kl_weight=1.0, **TRAIN)
+    assert metrics["epochs"] == 1
 
 
 def test_kl_warmup_epochs_must_be_a_nonnegative_int(image_dir, tmp_path):

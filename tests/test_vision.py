@@ -81,7 +81,22 @@ def test_architecture_follows_the_thesis():
     assert all(torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))
 
 
+def test_group_norm_off_removes_only_the_norm_layers():
+    with_norm = DenoisingVAE(VAEConfig(resolution=64, **SMALL), gen(3))
+    without = DenoisingVAE(VAEConfig(resolution=64, group_norm=False, **SMALL), gen(3))
+    assert not any(isinstance(m, torch.nn.GroupNorm) for m in without.modules())
+    assert sum(isinstance(m, torch.nn.GroupNorm) for m in with_norm.modules()) == 9  # 5 encoder + 4 decoder
+    strip = lambda net: [type(m).__name__ for m in net.modules() if not isinstance(m, torch.nn.GroupNorm)]  # noqa: E731
+    assert strip(with_norm) == strip(without)
+    # same weights from the same generator (GroupNorm draws nothing), different outputs
+    conv = lambda net: [m.weight for m in net.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))]  # noqa: E731
+    assert all(torch.equal(a, b) for a, b in zip(conv(with_norm), conv(without)))
+    x = torch.rand((2, 3, 64, 64), generator=gen(4))
+    assert not torch.allclose(with_norm.encode(x)[0], without.encode(x)[0])
+
+
 @pytest.mark.parametrize("kwargs,field", [
+    (dict(group_norm="no"), "group_norm"),
     (dict(resolution=48), "resolution"), (dict(resolution=1024), "resolution"), (dict(resolution=16), "resolution"),
     (dict(latent_dim=0), "latent_dim"), (dict(channels=(8, 8, 8, 8)), "channels"),
     (dict(channels=(8, 8, 12, 8, 8)), "channels"), (dict(leaky_slope=1.5), "leaky_slope"), (dict(groups=0), "groups"),

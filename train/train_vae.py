@@ -3,6 +3,8 @@
     python train/train_vae.py --images runs/images/PegInsert_r256
     python train/train_vae.py --images runs/images/PegInsert_r256 --device cpu --epochs 20
     python train/train_vae.py --images runs/images/PegInsert_r256 --out runs/vae/peg --resume
+    python train/train_vae.py --images runs/images/PegInsert_r64 --device cpu --epochs 40 \
+        --batch-size 32 --kl-weight 0.01 --no-group-norm        # the quick preset's CPU settings
 
 Thesis settings by default: Adam lr 1e-3, batch 128, 400 epochs, the Table 5.5 augmentations on
 the encoder input. The run directory (default runs/vae/<task>_r<resolution>_<date-time>) holds
@@ -10,8 +12,8 @@ vae.pt (the best weights by validation loss, which the RL side loads), checkpoin
 (written every epoch; --resume continues from it), tb/ (tensorboard), loss_curves.png,
 reconstructions.png and metrics.json (losses, throughput and a linear probe of the latent);
 vkgrl_newton/vision/train.py describes each. A directory that already holds a run is never
-reused without --resume. On --resume, --batch-size, --lr, --seed, --channels, --epochs and
---device default to the run's own; --epochs may be raised to train further.
+reused without --resume. On --resume, --batch-size, --lr, --seed, --channels, --kl-weight,
+--no-group-norm, --epochs and --device default to the run's own; --epochs may be raised.
 
 Torch uses its default number of CPU threads. On a CPU that other jobs keep busy, that can be
 far slower than one thread (OpenMP threads wait on each other): run with OMP_NUM_THREADS=1.
@@ -35,7 +37,8 @@ from vkgrl_newton.vision.dataset import ImageSet  # noqa: E402
 from vkgrl_newton.vision.train import CHECKPOINT, train_vae  # noqa: E402
 from vkgrl_newton.vision.vae import VAEConfig, load_vae  # noqa: E402
 
-DEFAULTS = {"epochs": 400, "batch_size": 128, "lr": 1e-3, "seed": 0}  # thesis Table 5.5
+DEFAULTS = {"epochs": 400, "batch_size": 128, "lr": 1e-3, "seed": 0, "kl_weight": 1.0,
+            "group_norm": True}  # thesis Table 5.5, eq. 4.48, 5.6.1
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,6 +58,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--kl-warmup-epochs", type=nonnegative_int, default=None,
                     help="epochs over which the KL weight rises 0 -> 1 (default 0, the thesis; a small image "
                          "set at 64 px wants ~10 against posterior collapse)")
+    ap.add_argument("--kl-weight", type=positive_float, default=None,
+                    help="weight of the KL term (default 1, eq. 4.48; the quick preset uses 0.01 at 64 px, see "
+                         "vkgrl_newton/vision/pipeline.py)")
+    ap.add_argument("--no-group-norm", dest="group_norm", action="store_const", const=False, default=None,
+                    help="no GroupNorm layers (the quick preset's CPU setting; default: GroupNorm(8) as 5.6.1)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from checkpoints/last.pt")
     ap.add_argument("--no-progress", action="store_true")
     return ap
@@ -102,14 +110,16 @@ def main(argv=None) -> int:
             ap.error(f"--resume: {args.out / CHECKPOINT} holds weights only, not a train_vae checkpoint")
         meta = payload["meta"]
         saved = {"batch_size": meta["batch_size"], "lr": meta["lr"], "seed": meta["seed"],
-                 "kl_warmup_epochs": meta.get("kl_warmup_epochs", 0),
+                 "kl_warmup_epochs": meta.get("kl_warmup_epochs", 0), "kl_weight": meta.get("kl_weight", 1.0),
+                 "group_norm": payload["config"].get("group_norm", True),
                  "channels": tuple(payload["config"]["channels"]), "epochs": payload["extra"]["epochs"]}
         for name, value in saved.items():
             given = getattr(args, name)
             if given is None:
                 setattr(args, name, value)
             elif name != "epochs" and given != value:
-                ap.error(f"--{name.replace('_', '-')} {given}: the run in {args.out} was trained with {value}; "
+                flag = "--no-group-norm" if name == "group_norm" else f"--{name.replace('_', '-')} {given}"
+                ap.error(f"{flag}: the run in {args.out} was trained with {name}={value}; "
                          "drop the flag to keep the run's value, or start a new run")
         if args.epochs < payload["epoch"]:
             ap.error(f"--epochs {args.epochs}: the run in {args.out} has trained {payload['epoch']} epochs already")
@@ -130,9 +140,10 @@ def main(argv=None) -> int:
         if getattr(args, name) is None:
             setattr(args, name, value)
     config = None
-    if args.channels is not None:
+    if args.channels is not None or not args.group_norm:
         try:
-            config = VAEConfig(resolution=images.resolution, channels=args.channels)
+            config = VAEConfig(resolution=images.resolution, channels=args.channels or VAEConfig().channels,
+                               group_norm=args.group_norm)
         except ValueError as e:
             ap.error(f"--channels: {e}")
     out = args.out or Path("runs/vae") / f"{images.task}_r{images.resolution}_{time.strftime('%Y%m%d-%H%M%S')}"
@@ -140,7 +151,7 @@ def main(argv=None) -> int:
         ap.error(f"--out {out} already holds a run; pass --resume to continue it or choose another directory")
     try:
         train_vae(images.dir, out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-                  kl_warmup_epochs=args.kl_warmup_epochs or 0,
+                  kl_warmup_epochs=args.kl_warmup_epochs or 0, kl_weight=args.kl_weight,
                   device=device, config=config, resume=args.resume, progress=not args.no_progress, log=tqdm.write)
     except KeyboardInterrupt:
         return 130

@@ -12,13 +12,13 @@ be smaller), 400 epochs. A batch is read from the memory-mapped images.npy at so
 on the fly. The encoder sees the augmented image (`vision.augment`, Table 5.5), the decoder is
 trained to reproduce the CLEAN image; loss = `vae_loss` (eq. 4.48) with z sampled (eq. 4.44).
 
-KL warm-up (`kl_warmup_epochs`, 0 = none, the thesis's setting): the KL term's weight rises
-linearly from 0 to 1 over the first epochs, then the loss is eq. 4.48 as is. Measured on the
-quick preset's PegInsert set (64 x 64, 4 096 images, 20 epochs, no warm-up): the posterior
-collapsed (KL 0.002 nats, the decoder drew the mean image, linear-probe R^2 ~ 0 on every
-component): at 64 px the summed squared error is 16x smaller against the same KL than at the
-thesis's 256 px, and the socket is a few-pixel blob. The warm-up lets the encoder learn the
-geometry as a plain autoencoder first (a standard remedy, Bowman et al. 2016).
+KL weight (`kl_weight`, 1 = eq. 4.48 as written, the thesis's setting) multiplies the KL term
+of the training loss and of the validation loss. KL warm-up (`kl_warmup_epochs`, 0 = none, the
+thesis's setting): the weight rises linearly from 0 to `kl_weight` over the first epochs.
+Measured on the quick preset's PegInsert set (64 x 64, 4 096 images): with the thesis's
+GroupNorm network and weight 1 the posterior collapsed (KL 0.002 nats, the decoder drew the mean
+image, linear-probe R^2 ~ 0); a warm-up only delayed it. What the quick preset uses instead, and
+why, is in vision/pipeline.py.
 
 Validation, after every epoch, on the set's VALIDATION split (whole episodes the training never
 saw, `vision.dataset`): clean images, no augmentation, and z = mu instead of a sample, so the
@@ -96,7 +96,7 @@ BEST = "vae.pt"
 
 def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: float = 1e-3, seed: int = 0,
               device: str | torch.device = "cpu", config: VAEConfig | None = None, resume: bool = False,
-              progress: bool = True, log=print, kl_warmup_epochs: int = 0) -> dict:
+              progress: bool = True, log=print, kl_warmup_epochs: int = 0, kl_weight: float = 1.0) -> dict:
     """Train a denoising VAE on the image set in `image_dir`, writing the run to `out_dir`.
 
     `epochs` is the total, counted from the start of the run (a resumed run trains the rest).
@@ -118,6 +118,9 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
         raise ValueError(f"train_vae: seed={seed!r}; allowed: an integer >= 0")
     if not (isinstance(kl_warmup_epochs, (int, np.integer)) and kl_warmup_epochs >= 0):
         raise ValueError(f"train_vae: kl_warmup_epochs={kl_warmup_epochs!r}; allowed: an integer >= 0")
+    if not (isinstance(kl_weight, (int, float)) and not isinstance(kl_weight, bool) and math.isfinite(kl_weight)
+            and kl_weight > 0):
+        raise ValueError(f"train_vae: kl_weight={kl_weight!r}; allowed: a finite number > 0 (1 = eq. 4.48)")
     epochs, batch_size, seed, lr = int(epochs), int(batch_size), int(seed), float(lr)
     device = torch.device(device)
     images = ImageSet(image_dir)
@@ -132,7 +135,8 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
                          "images; training needs at least 2 of each (collect it with val_fraction > 0)")
     meta = {"task": images.task, "image_dir": str(images.dir.resolve()), "image_count": len(images),
             "num_train": len(train_idx), "num_val": len(val_idx), "batch_size": batch_size, "lr": lr, "seed": seed,
-            "resolution": config.resolution, "latent_dim": config.latent_dim, "kl_warmup_epochs": int(kl_warmup_epochs)}
+            "resolution": config.resolution, "latent_dim": config.latent_dim, "kl_warmup_epochs": int(kl_warmup_epochs),
+            "kl_weight": float(kl_weight)}
 
     out = Path(out_dir)
     ckpt_path, best_path = out / CHECKPOINT, out / BEST
@@ -193,7 +197,8 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
                 recon, mu, logvar = vae(augment(clean, noise_gen), noise_gen)  # encoder input: augmented
                 # KL warm-up: the weight rises linearly 0 -> 1 over the first kl_warmup_epochs, then
                 # eq. 4.48 as is; without it a small image set collapses the posterior (see below)
-                beta = min(1.0, (epoch - 1 + start / len(order)) / kl_warmup_epochs) if kl_warmup_epochs else 1.0
+                ramp = min(1.0, (epoch - 1 + start / len(order)) / kl_warmup_epochs) if kl_warmup_epochs else 1.0
+                beta = kl_weight * ramp
                 parts = vae_loss(recon, clean, mu, logvar, kl_weight=beta)  # decoder target: the clean image
                 opt.zero_grad(set_to_none=True)
                 parts["loss"].backward()
@@ -203,7 +208,7 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
             train = dict(zip(LOSS_KEYS, (sums / len(order)).tolist()))  # one sync per epoch
             t1 = time.perf_counter()
             # validate: clean images, z = mu (deterministic)
-            val = _evaluate(vae, images.images, val_idx, batch_size, device)
+            val = _evaluate(vae, images.images, val_idx, batch_size, device, kl_weight)
             if not (math.isfinite(train["loss"]) and math.isfinite(val["loss"])):
                 raise FloatingPointError(f"VAE loss is not finite in epoch {epoch} (train {train['loss']}, "
                                          f"validation {val['loss']}); the run in {out} stops at epoch "
@@ -266,7 +271,8 @@ def _check_resume(payload: dict, meta: dict, config: VAEConfig, device: torch.de
     if payload.get("extra") is None or payload.get("optimizer") is None or payload.get("epoch") is None:
         raise ValueError(f"cannot resume from {path}: it holds weights only, not a training checkpoint of train_vae")
     saved = {k: v for k, v in payload["meta"].items() if k != "image_dir"}
-    saved.setdefault("kl_warmup_epochs", 0)  # written before the option existed
+    saved.setdefault("kl_warmup_epochs", 0)  # written before these options existed
+    saved.setdefault("kl_weight", 1.0)
     check_meta(saved, {k: v for k, v in meta.items() if k != "image_dir"}, path)
     if payload["config"] != dataclasses.asdict(config):
         check_meta({"config": payload["config"]}, {"config": dataclasses.asdict(config)}, path)
@@ -284,14 +290,16 @@ def _read_batch(images: np.ndarray, idx: np.ndarray, device: torch.device) -> to
 
 
 @torch.no_grad()
-def _evaluate(vae: DenoisingVAE, images: np.ndarray, idx: np.ndarray, batch_size: int, device) -> dict[str, float]:
-    """Mean loss parts over `idx`: clean input, z = mu, no augmentation."""
+def _evaluate(vae: DenoisingVAE, images: np.ndarray, idx: np.ndarray, batch_size: int, device,
+              kl_weight: float = 1.0) -> dict[str, float]:
+    """Mean loss parts over `idx`: clean input, z = mu, no augmentation; `loss` weighs the KL by
+    `kl_weight` (the objective trained after any warm-up)."""
     vae.eval()
     sums = torch.zeros(len(LOSS_KEYS), device=device)
     for start in range(0, len(idx), batch_size):
         clean = _read_batch(images, idx[start:start + batch_size], device)
         mu, logvar = vae.encode(clean)
-        parts = vae_loss(vae.decode(mu), clean, mu, logvar)
+        parts = vae_loss(vae.decode(mu), clean, mu, logvar, kl_weight=kl_weight)
         sums += torch.stack([parts[k] for k in LOSS_KEYS]) * clean.shape[0]
     return dict(zip(LOSS_KEYS, (sums / len(idx)).tolist()))
 
