@@ -166,7 +166,8 @@ def main(argv=None) -> int:
 
         sim = build_parts("NutThread")
         r = run_drive(sim, (0.0, 0.0, nut_rest_height(math.pi / 2)), math.pi / 2, 1.0, force_z=-0.5, omega_des=-2 * math.pi, torque_kd=1e-3)
-        print(f"turns {-r.yaw[-1, 0] / (2 * math.pi):.2f}, dz {1e3 * (r.pos[-1, 0, 2] - r.pos[0, 0, 2]):.2f} mm, "
+        turned = (math.pi / 2 - r.yaw[-1, 0]) / (2 * math.pi)
+        print(f"clockwise turns {turned:.2f}, dz {1e3 * (r.pos[-1, 0, 2] - r.pos[0, 0, 2]):.2f} mm, "
               f"advance {1e3 * advance_per_turn(r):.3f} mm/turn, max tilt {math.degrees(r.tilt.max()):.2f} deg, "
               f"contacts {r.contacts.mean():.0f}")
     else:
