@@ -453,3 +453,21 @@ def test_vae_loss_kl_weight_scales_only_the_kl_term():
     kl = 0.5 * (mu.double().square() + logvar.double().exp() - logvar.double() - 1).sum(1)
     torch.testing.assert_close(full["loss"].double(), (sse + kl).mean(), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(half["loss"].double(), (sse + 0.5 * kl).mean(), rtol=1e-5, atol=1e-5)
+
+
+def test_presets_and_their_cache_names(tmp_path):
+    """The thesis preset is Tables 5.5-5.6 with eq. 4.48 and GroupNorm as written; every setting
+    in which a preset differs from it is in its cache directory's name, so a VAE trained with
+    other settings is never picked up for it."""
+    from vkgrl_newton.vision.pipeline import VISION_PRESETS, VisionPreset, default_vae_dir
+
+    thesis, quick = VISION_PRESETS["thesis"], VISION_PRESETS["quick"]
+    assert (thesis.resolution, thesis.num_images, thesis.vae_epochs, thesis.vae_batch_size) == (256, 130_000, 400, 128)
+    assert thesis.kl_weight == 1.0 and thesis.group_norm and thesis.vae_config().group_norm
+    assert default_vae_dir(tmp_path, "PegInsert", thesis) == tmp_path / "PegInsert" / "vae_r256_n130000_e400_seed0"
+    assert default_vae_dir(tmp_path, "GearMesh", quick) == (
+        tmp_path / "GearMesh" / f"vae_r64_n4096_e{quick.vae_epochs}_b32_kl0.01_nonorm_seed0")
+    assert quick.vae_config() == VAEConfig(resolution=64, group_norm=False)
+    names = {default_vae_dir(tmp_path, "PegInsert", VisionPreset(64, 4096, 10, **kw)).name
+             for kw in ({}, {"vae_batch_size": 32}, {"kl_weight": 0.5}, {"group_norm": False}, {"seed": 1})}
+    assert len(names) == 5
