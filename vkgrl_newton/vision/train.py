@@ -240,7 +240,8 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
     # ------------------------------------------------------------------ figures, probe, metrics
     best_vae, _ = load_vae(best_path, map_location=device)  # what the RL side will load
     figure_idx = val_idx[np.unique(np.linspace(0, len(val_idx) - 1, NUM_FIGURE_IMAGES).round().astype(int))]
-    _save_png(out / "loss_curves.png", _plot_losses(history, best["epoch"], f"{images.task} r{config.resolution}"))
+    _save_png(out / "loss_curves.png", _plot_losses(history, best["epoch"], f"{images.task} r{config.resolution}",
+                                                    kl_weight))
     _save_png(out / "reconstructions.png",
               _plot_reconstructions(best_vae, images.images, figure_idx, torch.Generator(device).manual_seed(s_figure),
                                     device, best["epoch"]))
@@ -340,7 +341,7 @@ def _fmt(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.3f}"
 
 
-def _plot_losses(history: dict[str, list[float]], best_epoch: int, title: str):
+def _plot_losses(history: dict[str, list[float]], best_epoch: int, title: str, kl_weight: float = 1.0):
     """Three panels as thesis Figs. 6.7 (KL), 6.8 (reconstruction), 6.9 (total): train and val per epoch."""
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
@@ -362,7 +363,8 @@ def _plot_losses(history: dict[str, list[float]], best_epoch: int, title: str):
         ax.set_title(name)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"VAE {title}: per-sample loss (eq. 4.48), best validation epoch {best_epoch} (dotted)")
+    objective = "eq. 4.48" if kl_weight == 1.0 else f"eq. 4.48 with the KL weighted {kl_weight:g}"
+    fig.suptitle(f"VAE {title}: per-sample loss ({objective}), best validation epoch {best_epoch} (dotted)")
     fig.tight_layout()
     return fig
 
