@@ -1,11 +1,14 @@
 """Env throughput: env steps per second at several world counts, and where the time goes.
 
     python -m vkgrl_newton.envs.throughput --num-worlds 1 16 64 --steps 10 --json runs/bench/env.json
+    python -m vkgrl_newton.envs.throughput --task NutThread --policy scripted --warmup 75 --num-worlds 16
 
 Each env step is 8 physics steps (1/120 s) x `substeps` solver substeps, with the OSC kernel every
 substep, plus the contact-force reduction and the Python/torch work of the step (action mapping,
 observations, rewards, blow-up checks). The policy is zero actions through the SAC path (`step`),
-factory family, 4-D actions. Two timed runs per world count:
+factory family, 4-D actions; or, with `--policy scripted`, the scripted demonstrator through
+`step_pose`, timed after `--warmup` steps (e.g. 75 for NutThread: the nut is on the thread and
+contacts are at their peak). Two timed runs per world count:
 1. plain: wall time of `--steps` env steps (no synchronization beyond what the env does itself);
 2. profiled: the same number of steps with the device synchronized around each stage, giving the
    split kinematics+OSC (Newton's eval_jacobian/eval_mass_matrix and our OSC kernel), collision
@@ -27,33 +30,48 @@ import torch
 import warp as wp
 
 from .._io import atomic_write_text
+from ..tasks import TASKS
 from .assembly_env import AssemblyEnv, EnvConfig
 
 STAGES = ("kinematics_osc", "collision", "solver", "contact_forces")
 
 
-def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int = 2) -> dict:
-    env = AssemblyEnv(EnvConfig(num_envs=num_worlds, action_dim=4, family="factory", device=device))
-    zero = torch.zeros(num_worlds, 4, device=env.tdev)
+def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int = 2, task: str = "PegInsert",
+            policy: str = "zero") -> dict:
+    env = AssemblyEnv(EnvConfig(task=task, num_envs=num_worlds, action_dim=4, family="factory", device=device))
+    if 2 * steps + warmup >= env.max_episode_length:
+        raise ValueError(f"warmup + 2 x steps = {warmup + 2 * steps} must stay inside one {task} episode "
+                         f"({env.max_episode_length} steps): a time-out reset would be timed")
+    if policy == "scripted":
+        from .scripted import ScriptedInserter
+
+        inserter = ScriptedInserter(seed=0)
+        inserter.reset(env)
+        step = lambda: env.step_pose(*inserter.act(env))  # noqa: E731
+    else:
+        zero = torch.zeros(num_worlds, 4, device=env.tdev)
+        step = lambda: env.step(zero)  # noqa: E731
     for _ in range(warmup):
-        env.step(zero)
+        step()
     wp.synchronize_device(env.device)
     t0 = time.perf_counter()
     for _ in range(steps):
-        env.step(zero)
+        step()
     wp.synchronize_device(env.device)
     plain = time.perf_counter() - t0
 
     env.profile = {}
     t0 = time.perf_counter()
     for _ in range(steps):
-        env.step(zero)
+        step()
     wp.synchronize_device(env.device)
     profiled = time.perf_counter() - t0
     split = {k: env.profile.get(k, 0.0) / steps * 1e3 for k in STAGES}
     split["python"] = profiled / steps * 1e3 - sum(split.values())
     env.profile = None
     return {
+        "task": task,
+        "policy": policy,
         "num_worlds": num_worlds,
         "device": env.device,
         "steps": steps,
@@ -71,16 +89,19 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=10, help="timed env steps per run")
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
+    ap.add_argument("--task", default="PegInsert", choices=sorted(TASKS))
+    ap.add_argument("--policy", default="zero", choices=("zero", "scripted"))
+    ap.add_argument("--warmup", type=int, default=2, help="untimed env steps first")
     args = ap.parse_args(argv)
-    if min(args.num_worlds) < 1 or args.steps < 1:
-        ap.error("--num-worlds and --steps must be >= 1")
+    if min(args.num_worlds) < 1 or args.steps < 1 or args.warmup < 0:
+        ap.error("--num-worlds and --steps must be >= 1, --warmup >= 0")
     if args.json is not None and args.json.exists():
         ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
     rows = []
     print(f"{'worlds':>6} {'ms/step':>9} {'env steps/s':>12} {'x realtime':>10}   split ms/step: "
           + " ".join(f"{k:>14}" for k in (*STAGES, "python")))
     for n in args.num_worlds:
-        r = measure(n, args.steps, args.device)
+        r = measure(n, args.steps, args.device, warmup=args.warmup, task=args.task, policy=args.policy)
         rows.append(r)
         sp = r["split_ms_per_env_step"]
         print(f"{n:>6} {r['ms_per_env_step']:>9.1f} {r['env_steps_per_s']:>12.1f} {r['realtime_factor']:>10.2f}   "
