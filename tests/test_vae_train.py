@@ -171,6 +171,29 @@ def test_resume_continues_the_same_run_bitwise(straight, image_dir, tmp_path):
     assert metrics["final_val"] == straight[1]["final_val"] and metrics["probe"] == straight[1]["probe"]
 
 
+def test_resume_a_checkpoint_written_before_the_new_options(image_dir, tmp_path):
+    """A run checkpointed before group_norm / kl_weight existed (no such keys) resumes as what it
+    was: GroupNorm on, KL weight 1; asking it for no GroupNorm is refused, naming the field."""
+    import shutil
+
+    from vkgrl_newton.agents.checkpoint import load_checkpoint, save_checkpoint
+
+    out = tmp_path / "old"
+    train_vae(image_dir, out, epochs=1, **TRAIN)
+    path = out / "checkpoints" / "last.pt"
+    payload = load_checkpoint(path, required=())
+    del payload["config"]["group_norm"]
+    del payload["meta"]["kl_weight"]
+    payload.pop("format")
+    save_checkpoint(path, payload)
+    shutil.copytree(out, tmp_path / "old2")
+    metrics = train_vae(image_dir, out, epochs=2, resume=True, **TRAIN)
+    assert metrics["epochs"] == 2 and metrics["config"]["group_norm"] is True
+    no_norm = VAEConfig(resolution=RES, channels=CHANNELS, group_norm=False)
+    with pytest.raises(ValueError, match="group_norm"):
+        train_vae(image_dir, tmp_path / "old2", epochs=2, resume=True, **{**TRAIN, "config": no_norm})
+
+
 def test_resume_refuses_another_run(image_dir, tmp_path, straight):
     with pytest.raises(FileNotFoundError, match="last.pt"):
         train_vae(image_dir, tmp_path / "nothing", epochs=3, resume=True, **TRAIN)

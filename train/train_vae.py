@@ -56,8 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"encoder widths, multiples of 8 (default {','.join(map(str, VAEConfig().channels))})")
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--kl-warmup-epochs", type=nonnegative_int, default=None,
-                    help="epochs over which the KL weight rises 0 -> 1 (default 0, the thesis; a small image "
-                         "set at 64 px wants ~10 against posterior collapse)")
+                    help="epochs over which the KL weight rises from 0 to --kl-weight (default 0, the thesis)")
     ap.add_argument("--kl-weight", type=positive_float, default=None,
                     help="weight of the KL term (default 1, eq. 4.48; the quick preset uses 0.01 at 64 px, see "
                          "vkgrl_newton/vision/pipeline.py)")

@@ -15,12 +15,16 @@ Actions, two entry points:
   a * (0.02 m, 0.097 rad), kept within 5 cm of the target frame. 4D: (x, y, z, yaw), roll stays
   pi and pitch 0. 6D: all three rotations, with the tilt of the gripper axis from straight down
   bounded by `max_tilt` (default 30 degrees; this project's choice: the thesis gives no bound,
-  Factory forces roll = pi and pitch = 0).
+  Factory forces roll = pi and pitch = 0). NutThread (Factory's `unidirectional_rot`, applied in
+  both families here): the yaw action maps to -(a + 1) / 2 in [-1, 0], clockwise only, so a zero
+  action turns at half speed and -1 holds the yaw.
 - `step_pose(tcp_pos_w, tcp_quat_w)`: an absolute TCP pose command (world frame), held for the
-  control step; the KGRL path (KMP prior + null-space action) uses it.
+  control step; the KGRL path (KMP prior + null-space action) uses it (no yaw restriction: the
+  prior turns the nut, the null-space action may turn either way).
 
-Reward (thesis 5.2): Factory 4 per step in the success state (held part centred on the fixed part
-within 2.5 mm and seated within 1 mm, design.md); Forge adds -0.001 (|dp|/0.02 + sum |d angle|/0.097)
+Reward (thesis 5.2): Factory 4 per step in the success state (held part centred on its target
+within 2.5 mm and seated within 1 mm, the nut within 0.75 mm and with the TCP yaw below 0,
+design.md and `TASK_GEOMETRY`); Forge adds -0.001 (|dp|/0.02 + sum |d angle|/0.097)
 (eqs. 5.11-5.18, dp = tcp - command) and -max(0, |f_smooth| - 7.5 N) (eq. 5.19).
 
 Forge family (`randomize_dynamics`, on by default for forge; facts 9.3): Kp (565, 28) scaled per
@@ -29,7 +33,7 @@ torque dead zone U(0, 1) x (5 N, 1 N m) drawn at reset and again every 2 s, held
 per reset. Not randomized here: friction (Isaac Lab's own defaults overwrite its friction events,
 facts 9.3) and the contact-penalty threshold (Forge draws U(5, 10) N; the thesis fixes 7.5 N).
 
-Episodes last 150 steps (10 s) and end by time-out only, all worlds together (Factory). A
+Episodes last the task's length (150 steps = 10 s; NutThread 225 = 15 s) and end by time-out only, all worlds together (Factory). A
 physics blow-up (NaN, runaway velocity, a part thrown away) in one world resets that world
 alone and is counted in `extras["log"]["/physics_resets"]`.
 

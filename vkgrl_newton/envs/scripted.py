@@ -6,7 +6,8 @@ speeds, so demonstrations vary naturally (the KMP learns a distribution, not one
 
 Phases (positions are of the held part's bottom, the quantity that must reach the hole):
 0. approach: a minimum-jerk move of the part's bottom to `approach_height` above the fixed tip on
-   the hole axis, while the gripper yaw turns toward psi_ref;
+   the hole axis, while the gripper yaw turns toward psi_ref (GearMesh: toward the meshing yaw
+   nearest psi_ref; NutThread: held, the turn comes once the nut is on the thread, `_yaw`);
 1. align: hold until the part is on the axis (`align_tolerance`) and the arm is still, or for at
    most `align_timeout_s`;
 2. descend to the entry point `entry_height` above the fixed tip;
@@ -134,7 +135,10 @@ class ScriptedInserter:
         _, _, held_yaw = euler_xyz_from_quat(env.held_pose()[1])
         d = held_yaw - yaw
         self.held_yaw_offset = torch.atan2(torch.sin(d), torch.cos(d))
-        self.t_turn = self._u(n, p.turn_time_s, dev)
+        # drawn for NutThread only: an extra draw would shift the other tasks' random streams (their
+        # recorded demonstrations and image sets stay reproducible per seed)
+        self.t_turn = (self._u(n, p.turn_time_s, dev) if env.cfg.task == "NutThread"
+                       else torch.full((n,), p.turn_time_s[0], device=dev))
         self.turn_t0 = torch.full((n,), -1.0, device=dev)
 
     def _start_segment(self, mask, goal, duration, t):

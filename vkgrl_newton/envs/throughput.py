@@ -6,7 +6,8 @@
 Each env step is 8 physics steps (1/120 s) x `substeps` solver substeps, with the OSC kernel every
 substep, plus the contact-force reduction and the Python/torch work of the step (action mapping,
 observations, rewards, blow-up checks). The policy is zero actions through the SAC path (`step`),
-factory family, 4-D actions; or, with `--policy scripted`, the scripted demonstrator through
+factory family, 4-D actions (NutThread: a zero action turns the gripper clockwise at half speed,
+see assembly_env); or, with `--policy scripted`, the scripted demonstrator through
 `step_pose`, timed after `--warmup` steps (e.g. 75 for NutThread: the nut is on the thread and
 contacts are at their peak). Two timed runs per world count:
 1. plain: wall time of `--steps` env steps (no synchronization beyond what the env does itself);
@@ -30,7 +31,7 @@ import torch
 import warp as wp
 
 from .._io import atomic_write_text
-from ..tasks import TASKS
+from ..tasks import TASKS, get_task
 from .assembly_env import AssemblyEnv, EnvConfig
 
 STAGES = ("kinematics_osc", "collision", "solver", "contact_forces")
@@ -39,9 +40,6 @@ STAGES = ("kinematics_osc", "collision", "solver", "contact_forces")
 def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int = 2, task: str = "PegInsert",
             policy: str = "zero") -> dict:
     env = AssemblyEnv(EnvConfig(task=task, num_envs=num_worlds, action_dim=4, family="factory", device=device))
-    if 2 * steps + warmup >= env.max_episode_length:
-        raise ValueError(f"warmup + 2 x steps = {warmup + 2 * steps} must stay inside one {task} episode "
-                         f"({env.max_episode_length} steps): a time-out reset would be timed")
     if policy == "scripted":
         from .scripted import ScriptedInserter
 
@@ -95,6 +93,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if min(args.num_worlds) < 1 or args.steps < 1 or args.warmup < 0:
         ap.error("--num-worlds and --steps must be >= 1, --warmup >= 0")
+    episode = get_task(args.task).episode_steps
+    if args.warmup + 2 * args.steps >= episode:
+        ap.error(f"--warmup + 2 x --steps = {args.warmup + 2 * args.steps} must stay inside one {args.task} episode "
+                 f"({episode} steps): a time-out reset would be timed")
     if args.json is not None and args.json.exists():
         ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
     rows = []

@@ -72,7 +72,7 @@ class SimConfig:
             raise ValueError(f"substeps must be an integer >= 1, got {self.substeps!r}")
         for name in ("nconmax", "njmax"):
             v = getattr(self, name)
-            if v is not None and (not isinstance(v, int) or v < 1):
+            if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):
                 raise ValueError(f"{name} must be None or an integer >= 1, got {v!r}")
         for name in ("contact_gap", "contact_ke", "contact_kd", "impratio"):
             if not getattr(self, name) > 0:

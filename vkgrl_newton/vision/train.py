@@ -195,8 +195,7 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
                 idx = np.sort(order[start:start + batch_size])
                 clean = _read_batch(images.images, idx, device)
                 recon, mu, logvar = vae(augment(clean, noise_gen), noise_gen)  # encoder input: augmented
-                # KL warm-up: the weight rises linearly 0 -> 1 over the first kl_warmup_epochs, then
-                # eq. 4.48 as is; without it a small image set collapses the posterior (see below)
+                # KL warm-up: the weight rises linearly 0 -> kl_weight over the first kl_warmup_epochs
                 ramp = min(1.0, (epoch - 1 + start / len(order)) / kl_warmup_epochs) if kl_warmup_epochs else 1.0
                 beta = kl_weight * ramp
                 parts = vae_loss(recon, clean, mu, logvar, kl_weight=beta)  # decoder target: the clean image
@@ -275,8 +274,9 @@ def _check_resume(payload: dict, meta: dict, config: VAEConfig, device: torch.de
     saved.setdefault("kl_warmup_epochs", 0)  # written before these options existed
     saved.setdefault("kl_weight", 1.0)
     check_meta(saved, {k: v for k, v in meta.items() if k != "image_dir"}, path)
-    if payload["config"] != dataclasses.asdict(config):
-        check_meta({"config": payload["config"]}, {"config": dataclasses.asdict(config)}, path)
+    saved_config = {"group_norm": True, **payload["config"]}  # written before group_norm existed: it had GroupNorm
+    if saved_config != dataclasses.asdict(config):
+        check_meta({"config": saved_config}, {"config": dataclasses.asdict(config)}, path)
     if payload["extra"]["noise_device"] != device.type:
         raise ValueError(f"checkpoint {path} was trained on {payload['extra']['noise_device']}; resume it there "
                          f"(device={device.type!r} given): the noise generator's state is device-specific")

@@ -12,7 +12,8 @@ in that order as the thesis writes it, then flatten and two linear heads for mu 
 (d_z = 16). Decoder, the mirror: linear -> (C5, R/32, R/32) -> 4 x [ConvTranspose2d(k=4, s=2,
 p=1) -> LeakyReLU -> GroupNorm(8)] -> ConvTranspose2d(k=4, s=2, p=1) to 3 channels -> sigmoid.
 The thesis gives neither the channel widths nor the Leaky ReLU slope: (32, 64, 128, 256, 256) and
-0.2 are our choice.
+0.2 are our choice. `VAEConfig.group_norm=False` drops the GroupNorm layers (the CPU `quick`
+preset's setting, vision/pipeline.py says why).
 
 Loss (eq. 4.48, with sigma_o^2 of eq. 4.42 absorbed into the unit weight of the squared error):
     L = 1/N sum_t [ ||o_t - f(z_t)||^2 + 1/2 sum_j (mu_tj^2 + sigma_tj^2 - log sigma_tj^2 - 1) ]
