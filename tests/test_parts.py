@@ -189,3 +189,35 @@ def test_gear_slides_when_aligned_and_is_blocked_when_not(gear_model):
     assert abs(z_aligned) < 0.0005  # seated: origin at the base frame's level
     assert z_blocked == pytest.approx(author.GEAR_HEIGHT, abs=0.0005)
     assert np.hypot(r.pos[-1, 0, 0] - MEDIUM_SHAFT_X, r.pos[-1, 0, 1]) < 0.0005
+
+
+@pytest.mark.parametrize("task, meshes, off_prefixes", [
+    ("GearMesh", {"medium_gear/gear_mesh": "held", "gear_base/small_gear_mesh": -1, "gear_base/large_gear_mesh": -1},
+     ("medium_gear/tooth_", "medium_gear/bore_", "gear_base/small_", "gear_base/large_")),
+    ("NutThread", {"nut/thread_mesh": "held", "bolt/thread_mesh": -1},
+     ("nut/thread_", "nut/hex_", "bolt/thread_", "bolt/core")),
+])
+def test_mesh_variant_replaces_the_primitive_teeth_and_threads(wp_cpu, task, meshes, off_prefixes):
+    """geometry='mesh' (template only, no SDF on a CPU): the primitives the meshes stand in for
+    stop colliding, the meshes sit on the same bodies with the parts' friction, and the held
+    part's mass is still the authored one (the meshes add none)."""
+    import newton
+
+    from vkgrl_newton.sim.scene import SimConfig, build_template, stage_root
+
+    prim, _ = build_template(task, SimConfig(num_worlds=1, device="cpu"))
+    mesh, info = build_template(task, SimConfig(num_worlds=1, device="cpu", geometry="mesh"))
+    root = f"/{stage_root(task)}/"
+    collide = int(newton.ShapeFlags.COLLIDE_SHAPES)
+    labels = list(mesh.shape_label)
+    for suffix, body in meshes.items():
+        s = labels.index(root + suffix)
+        assert mesh.shape_type[s] == newton.GeoType.MESH and mesh.shape_flags[s] & collide
+        assert mesh.shape_body[s] == (info["held"] if body == "held" else -1)
+        assert (root + suffix) not in prim.shape_label
+    for s, lbl in enumerate(labels):
+        if any(lbl.startswith(root + p) for p in off_prefixes) and not lbl.endswith("_mesh"):
+            assert not mesh.shape_flags[s] & collide, lbl
+    assert mesh.body_mass[info["held"]] == pytest.approx(prim.body_mass[info["held"]], rel=1e-9)
+    fixed_mesh = [root + k for k, b in meshes.items() if b == -1]
+    assert all(labels.index(m) in info["socket"] for m in fixed_mesh)  # re-placed with the fixed asset

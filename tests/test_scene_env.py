@@ -163,7 +163,7 @@ def test_bad_arguments_raise_value_error(peg_env):
             EnvConfig(**kwargs)
     for kwargs, field in [({"num_worlds": 0}, "num_worlds"), ({"solver": "xpbd"}, "solver"),
                           ({"substeps": 0}, "substeps"), ({"nconmax": 0}, "nconmax"), ({"njmax": 2.5}, "njmax"),
-                          ({"nconmax": True}, "nconmax")]:
+                          ({"nconmax": True}, "nconmax"), ({"geometry": "sdf"}, "geometry")]:
         with pytest.raises(ValueError, match=field):
             SimConfig(**kwargs)
     env = peg_env

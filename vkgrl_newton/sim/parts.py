@@ -30,7 +30,7 @@ import newton
 
 from ..assets_usd import TASK_USD
 from ..assets_usd.author import SOCKET_NOMINAL_POS
-from .scene import SimConfig, apply_contact_settings, contact_limits, stage_root
+from .scene import GEOMETRIES, SimConfig, add_part_meshes, apply_contact_settings, contact_limits, stage_root
 
 __all__ = ["PartsSim", "build_parts", "DriveResult", "run_drive"]
 
@@ -50,6 +50,9 @@ def build_parts(task: str, num_worlds: int = 1, config: SimConfig | None = None)
     config = config or SimConfig(num_worlds=num_worlds, device="cpu")
     template = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     template.add_usd(str(TASK_USD[task]))
+    if config.geometry == "mesh":
+        device = str(config.device or "cpu")
+        add_part_meshes(template, task, sdf_device=device if device.startswith("cuda") else None)
     for s in range(len(template.shape_label)):
         apply_contact_settings(template, s, config)
     root = f"/{stage_root(task)}/"
@@ -160,11 +163,15 @@ def nut_rest_height(yaw: float) -> float:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", choices=("NutThread", "GearMesh"), required=True)
+    ap.add_argument("--geometry", choices=GEOMETRIES, default="primitives",
+                    help="the parts' collision geometry (mesh: SDFs on CUDA, Newton's triangle BVH path on a CPU)")
+    ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
+    config = lambda nw: SimConfig(num_worlds=nw, device=args.device, geometry=args.geometry)  # noqa: E731
     if args.task == "NutThread":
         from ..assets_usd.author import THREAD_BOLT_TOP, THREAD_NUT_BOTTOM, THREAD_PITCH
 
-        sim = build_parts("NutThread")
+        sim = build_parts("NutThread", config=config(1))
         r = run_drive(sim, (0.0, 0.0, nut_rest_height(math.pi / 2)), math.pi / 2, 1.0, force_z=-0.5, omega_des=-2 * math.pi, torque_kd=1e-3)
         turned = (math.pi / 2 - r.yaw[-1, 0]) / (2 * math.pi)
         print(f"clockwise turns {turned:.2f}, dz {1e3 * (r.pos[-1, 0, 2] - r.pos[0, 0, 2]):.2f} mm, "
@@ -173,7 +180,7 @@ def main(argv=None) -> int:
     else:
         from ..assets_usd.author import GEAR_MEDIUM_X, GEAR_TEETH
 
-        sim = build_parts("GearMesh", num_worlds=2)
+        sim = build_parts("GearMesh", num_worlds=2, config=config(2))
         pitch = 2 * math.pi / GEAR_TEETH["medium"]
         r = run_drive(sim, (GEAR_MEDIUM_X, 0.0, 0.03), [0.0, pitch / 2], 0.5, force_z=-1.0)
         for w, name in enumerate(("aligned", "misaligned")):

@@ -31,6 +31,15 @@ from ..tasks import DECIMATION, SIM_DT, get_task
 __all__ = ["SimConfig", "Scene", "build_scene", "default_device", "SOLVERS"]
 
 SOLVERS = ("mujoco", "steel")
+# Collision geometry of the GearMesh / NutThread parts: the authored primitives (box teeth,
+# capsule threads; the default), or closed triangle meshes (solid box-tooth gears, ISO 68-1
+# threads; assets_usd/part_meshes.py) which on CUDA get signed distance fields (Newton builds
+# mesh SDFs on CUDA only) and on a CPU collide through Newton's triangle BVH path (slow:
+# reference/threads_gears_cpu_facts.md measured 12-30x the primitives)
+GEOMETRIES = ("primitives", "mesh")
+SDF_VOXEL = {"GearMesh": 0.00025, "NutThread": 0.0001}  # m: a quarter of a tooth clearance, half a thread crest
+SDF_BAND = (-0.002, 0.002)  # m, narrow band of the SDFs
+SDF_MARGIN = 0.005  # m, AABB padding of the SDFs (more than any contact gap here)
 
 # Factory's reset posture (reference/isaaclab_factory_facts.md section 3); also the null-space target
 FACTORY_RESET_JOINTS = (1.5178e-3, -0.19651, -1.4364e-3, -1.9761, -2.7717e-4, 1.7796, 0.78556)
@@ -62,12 +71,15 @@ class SimConfig:
     nconmax: int | None = None
     njmax: int | None = None
     robot_usd: str | None = None  # a user's own robot stage (same body/joint names); None: the bundled Franka
+    geometry: str = "primitives"  # GEOMETRIES
 
     def __post_init__(self):
         if not isinstance(self.num_worlds, int) or self.num_worlds < 1:
             raise ValueError(f"num_worlds must be an integer >= 1, got {self.num_worlds!r}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if self.geometry not in GEOMETRIES:
+            raise ValueError(f"geometry must be one of {GEOMETRIES}, got {self.geometry!r}")
         if not isinstance(self.substeps, int) or self.substeps < 1:
             raise ValueError(f"substeps must be an integer >= 1, got {self.substeps!r}")
         for name in ("nconmax", "njmax"):
@@ -174,6 +186,9 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
     robot_usd = config.robot_usd or str(FRANKA_USD)
     builder.add_usd(robot_usd, enable_self_collisions=False, load_visual_shapes=True)
     builder.add_usd(str(TASK_USD[task]))
+    if config.geometry == "mesh":
+        device = config.device or default_device()
+        add_part_meshes(builder, task, sdf_device=device if str(device).startswith("cuda") else None)
 
     bodies = builder.body_label
     shapes = builder.shape_label
@@ -218,6 +233,75 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
     arm_q0 = builder.joint_q_start[_find(builder.joint_label, "/joint1")]
     builder.joint_q[arm_q0 : arm_q0 + ARM_DOFS] = list(FACTORY_RESET_JOINTS)
     return builder, info
+
+
+def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | None = None) -> list[int]:
+    """The mesh variant: switch off the primitive teeth / threads (and the cores and bores they
+    ride on) of the task's parts and add closed triangle meshes in their place, on the same
+    bodies; with `sdf_device` (a CUDA device) each mesh gets its SDF built there first. The hub,
+    shaft, plate and bolt head stay primitives. PegInsert has no mesh variant (its primitives
+    are exact). Returns the new shape indices."""
+    from ..assets_usd import author
+    from ..assets_usd import part_meshes as pm
+
+    if task not in SDF_VOXEL:
+        raise ValueError(f"SimConfig.geometry='mesh' exists for {sorted(SDF_VOXEL)}, not {task!r}; "
+                         "use 'primitives'")
+    root = f"/{stage_root(task)}/"
+    labels = list(builder.shape_label)
+    collide = int(newton.ShapeFlags.COLLIDE_SHAPES)
+
+    def off(*prefixes):
+        for s, lbl in enumerate(labels):
+            if any(lbl.startswith(root + p) for p in prefixes):
+                builder.shape_flags[s] &= ~collide
+
+    def cfg(mu):
+        return newton.ModelBuilder.ShapeConfig(density=0.0, mu=mu)  # mass stays the authored MassAPI's
+
+    def mesh(vf):
+        v, f = vf
+        m = newton.Mesh(v.astype(np.float32), f.reshape(-1).astype(np.int32), compute_inertia=False)
+        if sdf_device is not None:  # margin: the SDF must reach past the contact gap
+            m.build_sdf(device=sdf_device, target_voxel_size=SDF_VOXEL[task], narrow_band_range=SDF_BAND,
+                        margin=SDF_MARGIN)
+        return m
+
+    held = next(i for i, lbl in enumerate(builder.body_label) if lbl.startswith(root))
+    nominal = wp.transform(author.SOCKET_NOMINAL_POS, wp.quat_identity())
+    z0, z1 = author.GEAR_BASE_HEIGHT, author.GEAR_BASE_HEIGHT + author.GEAR_HEIGHT
+    added = []
+    if task == "GearMesh":
+        off("medium_gear/tooth_", "medium_gear/bore_", "gear_base/small_", "gear_base/large_")
+        width = author.gear_tooth_width()
+
+        def outline(name):
+            z = author.GEAR_TEETH[name]
+            return pm.gear_outline(z, author.gear_root_radius(name), author.GEAR_MODULE * (z / 2 + 1), width)
+
+        a = 2 * np.pi * np.arange(48) / 48
+        bore = np.column_stack([author.GEAR_BORE_APOTHEM * np.cos(a), author.GEAR_BORE_APOTHEM * np.sin(a)])
+        added.append(builder.add_shape_mesh(held, mesh=mesh(pm.extrude(outline("medium"), bore, z0, z1)),
+                                            cfg=cfg(author.PART_FRICTION), label=root + "medium_gear/gear_mesh"))
+        for name, (cx, cy) in author.gear_centres().items():
+            if name == "medium":
+                continue
+            xform = wp.transform((author.SOCKET_NOMINAL_POS[0] + cx, author.SOCKET_NOMINAL_POS[1] + cy,
+                                  author.SOCKET_NOMINAL_POS[2]), wp.quat_identity())
+            added.append(builder.add_shape_mesh(-1, xform=xform, mesh=mesh(pm.extrude(outline(name), None, z0, z1)),
+                                                cfg=cfg(author.PART_FRICTION), label=root + f"gear_base/{name}_gear_mesh"))
+    else:
+        off("nut/thread_", "nut/hex_", "bolt/thread_", "bolt/core")
+        major = author.THREAD_BOLT_RADIUS + author.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
+        tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT
+        rod = pm.threaded_rod(author.THREAD_PITCH, major, author.BOLT_BASE_HEIGHT, tip, chamfer=0.001)
+        nut = pm.threaded_bore(author.THREAD_PITCH, major, 0.00015, author.NUT_HEIGHT, author.NUT_ACROSS_FLATS,
+                               countersink=0.0005)
+        added.append(builder.add_shape_mesh(-1, xform=nominal, mesh=mesh(rod), cfg=cfg(author.BOLT_FRICTION),
+                                            label=root + "bolt/thread_mesh"))
+        added.append(builder.add_shape_mesh(held, mesh=mesh(nut), cfg=cfg(author.NUT_FRICTION),
+                                            label=root + "nut/thread_mesh"))
+    return added
 
 
 def apply_contact_settings(builder: newton.ModelBuilder, shape: int, config: SimConfig) -> None:
