@@ -735,10 +735,11 @@ class AssemblyEnv(VecEnv):
             fresh = torch.rand(self.num_envs, 1, device=self.tdev, generator=self.generator) * self.dead_zone_max
             self.dead_zone.copy_(torch.where(redraw, fresh, self.dead_zone))
         held_p, _ = self.held_pose()
+        tcp_p, tcp_q = self.tcp_pose()  # once per step: the nut's success test and Forge's penalty read it
         d = held_p - self.target_base_w
         success = (d[:, :2].norm(dim=-1) < self.geometry.success_xy) & (d[:, 2] < self.geometry.success_z)
         if self.geometry.success_tcp_yaw_max is not None:
-            _, _, tcp_yaw = euler_xyz_from_quat(self.tcp_pose()[1])
+            _, _, tcp_yaw = euler_xyz_from_quat(tcp_q)
             tcp_yaw = torch.remainder(tcp_yaw, 2 * math.pi)  # Factory's Euler yaw is in [0, 2 pi), then wrap_yaw:
             tcp_yaw = torch.where(tcp_yaw > math.radians(235.0), tcp_yaw - 2 * math.pi, tcp_yaw)  # (-125, 235] deg
             success = success & (tcp_yaw < self.geometry.success_tcp_yaw_max)
@@ -750,7 +751,6 @@ class AssemblyEnv(VecEnv):
         reward = SUCCESS_REWARD * success.float()
         log: dict[str, float | torch.Tensor] = {}
         if self.cfg.family == "forge":
-            tcp_p, tcp_q = self.tcp_pose()
             e_pos = (tcp_p - cmd_pos).norm(dim=-1) / POS_ACTION_SCALE
             r1, p1, y1 = euler_xyz_from_quat(tcp_q)
             r2, p2, y2 = euler_xyz_from_quat(cmd_quat)

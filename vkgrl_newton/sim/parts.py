@@ -24,12 +24,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 import warp as wp
 
 import newton
 
 from ..assets_usd import TASK_USD
 from ..assets_usd.author import SOCKET_NOMINAL_POS
+from ..kmp.pose import euler_xyz_from_quat
 from .scene import GEOMETRIES, SimConfig, add_part_meshes, apply_contact_settings, contact_limits, stage_root
 
 __all__ = ["PartsSim", "build_parts", "DriveResult", "run_drive"]
@@ -75,10 +77,11 @@ class DriveResult:
 
 
 def _yaw_tilt(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    """Yaw (XYZ Euler, kmp.pose) and the tilt of the body z axis from vertical, xyzw quats."""
+    _, _, yaw = euler_xyz_from_quat(torch.from_numpy(np.ascontiguousarray(q, dtype=np.float64)))
+    x, y = q[..., 0], q[..., 1]
     zz = 1 - 2 * (x * x + y * y)  # z component of the rotated z axis
-    return yaw, np.arccos(np.clip(zz, -1.0, 1.0))
+    return yaw.numpy(), np.arccos(np.clip(zz, -1.0, 1.0))
 
 
 def run_drive(sim: PartsSim, start_pos, start_yaw, duration: float, force_z: float, omega_des: float = 0.0,
@@ -114,14 +117,15 @@ def run_drive(sim: PartsSim, start_pos, start_yaw, duration: float, force_z: flo
     dt = cfg.sim_dt / cfg.substeps
     frames = int(round(duration / cfg.sim_dt))
     t_log, pos_log, q_log, n_log = [], [], [], []
+    held_t = torch.as_tensor(held, device=wp.device_to_torch(model.device))
     for f in range(frames):
         for _ in range(cfg.substeps):
-            qd = s0.body_qd.numpy()
-            wrench = np.zeros((model.body_count, 6), dtype=np.float32)
-            wz = qd[held, 5]
-            wrench[held, 2] = force_z
-            wrench[held, 5] = np.clip(torque_kd * (omega_des - wz), -torque_max, torque_max)
-            s0.body_f.assign(wrench)
+            # the drive on the device (torch views of the state, no host round trip per substep)
+            wz = wp.to_torch(s0.body_qd)[held_t, 5]
+            wrench = wp.to_torch(s0.body_f)
+            wrench.zero_()
+            wrench[held_t, 2] = force_z
+            wrench[held_t, 5] = torch.clamp(torque_kd * (omega_des - wz), -torque_max, torque_max)
             pipeline.collide(s0, contacts)
             solver.step(s0, s1, control, contacts, dt)
             s0, s1 = s1, s0
