@@ -25,6 +25,15 @@ def gear_model(wp_cpu):
 
 
 @pytest.fixture(scope="module")
+def gear_mesh_model(wp_cpu):
+    """The mesh variant on a CPU: no SDFs, the tooth meshes collide through the triangle BVH."""
+    from vkgrl_newton.sim.parts import build_parts
+    from vkgrl_newton.sim.scene import SimConfig
+
+    return build_parts("GearMesh", config=SimConfig(num_worlds=2, device="cpu", geometry="mesh"))
+
+
+@pytest.fixture(scope="module")
 def nut_model(wp_cpu):
     from vkgrl_newton.sim.parts import build_parts
 
@@ -177,30 +186,35 @@ def test_nut_does_not_descend_without_turning(nut_model):
     assert r.pos[-1, 0, 2] > z0 - 0.0003  # settles by less than the thread clearance
 
 
-def test_gear_slides_when_aligned_and_is_blocked_when_not(gear_model):
+@pytest.mark.parametrize("geometry", ["primitives", "mesh"])
+def test_gear_slides_when_aligned_and_is_blocked_when_not(request, geometry):
     """Pushed down (1 N) from above its shaft: at yaw 0 (teeth facing the neighbours' gaps) the
     medium gear seats on the base plate; turned by half a tooth pitch it rests on the neighbours'
-    tooth tops, one face width (20 mm) higher."""
+    tooth tops, one face width (20 mm) higher. Both collision geometries (the mesh variant's
+    tooth meshes meet through the triangle BVH here, no SDF on a CPU)."""
     from vkgrl_newton.sim.parts import run_drive
 
+    model = request.getfixturevalue("gear_model" if geometry == "primitives" else "gear_mesh_model")
     pitch = 2 * math.pi / 19
-    r = run_drive(gear_model, (MEDIUM_SHAFT_X, 0.0, 0.03), [0.0, pitch / 2], 0.4, force_z=-1.0)
+    r = run_drive(model, (MEDIUM_SHAFT_X, 0.0, 0.03), [0.0, pitch / 2], 0.4, force_z=-1.0)
     z_aligned, z_blocked = r.pos[-1, 0, 2], r.pos[-1, 1, 2]
     assert abs(z_aligned) < 0.0005  # seated: origin at the base frame's level
     assert z_blocked == pytest.approx(author.GEAR_HEIGHT, abs=0.0005)
     assert np.hypot(r.pos[-1, 0, 0] - MEDIUM_SHAFT_X, r.pos[-1, 0, 1]) < 0.0005
 
 
-@pytest.mark.parametrize("task, meshes, off_prefixes", [
+@pytest.mark.parametrize("task, meshes, off_prefixes, kept_prefixes", [
     ("GearMesh", {"medium_gear/gear_mesh": "held", "gear_base/small_gear_mesh": -1, "gear_base/large_gear_mesh": -1},
-     ("medium_gear/tooth_", "medium_gear/bore_", "gear_base/small_", "gear_base/large_")),
+     ("medium_gear/tooth_", "gear_base/small_", "gear_base/large_"), ("medium_gear/bore_", "medium_gear/hub")),
     ("NutThread", {"nut/thread_mesh": "held", "bolt/thread_mesh": -1},
-     ("nut/thread_", "nut/hex_", "bolt/thread_", "bolt/core")),
+     ("nut/thread_", "bolt/thread_"), ("nut/hex_", "bolt/core")),
 ])
-def test_mesh_variant_replaces_the_primitive_teeth_and_threads(wp_cpu, task, meshes, off_prefixes):
+def test_mesh_variant_replaces_the_primitive_teeth_and_threads(wp_cpu, task, meshes, off_prefixes, kept_prefixes):
     """geometry='mesh' (template only, no SDF on a CPU): the primitives the meshes stand in for
-    stop colliding, the meshes sit on the same bodies with the parts' friction, and the held
-    part's mass is still the authored one (the meshes add none)."""
+    stop colliding, the meshes sit on the same bodies with the parts' friction, the held part's
+    mass is still the authored one (the meshes add none), and the meshes collide with meshes
+    only: every other colliding shape (bore ring, hex, plate, finger pads) is filtered against
+    each of them and keeps its own contacts."""
     import newton
 
     from vkgrl_newton.sim.scene import SimConfig, build_template, stage_root
@@ -221,3 +235,12 @@ def test_mesh_variant_replaces_the_primitive_teeth_and_threads(wp_cpu, task, mes
     assert mesh.body_mass[info["held"]] == pytest.approx(prim.body_mass[info["held"]], rel=1e-9)
     fixed_mesh = [root + k for k, b in meshes.items() if b == -1]
     assert all(labels.index(m) in info["socket"] for m in fixed_mesh)  # re-placed with the fixed asset
+    kept = [s for s, lbl in enumerate(labels) if any(lbl.startswith(root + p) for p in kept_prefixes)]
+    assert kept and all(mesh.shape_flags[s] & collide for s in kept)
+    mesh_shapes = {labels.index(root + k) for k in meshes}
+    others = {s for s in range(len(labels)) if s not in mesh_shapes and mesh.shape_flags[s] & collide}
+    assert set(info["pads"]) <= others and set(kept) <= others
+    filtered = set(mesh.shape_collision_filter_pairs)
+    for m in mesh_shapes:
+        assert all((min(m, s), max(m, s)) in filtered for s in others)
+        assert not any((min(m, n), max(m, n)) in filtered for n in mesh_shapes if n != m)

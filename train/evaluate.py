@@ -33,7 +33,7 @@ from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,  # noqa: E402
                                             ZeroPolicy, evaluate, write_video)
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
-from vkgrl_newton.sim.scene import SOLVERS, SimConfig  # noqa: E402
+from vkgrl_newton.sim.scene import GEOMETRIES, SDF_VOXEL, SOLVERS, SimConfig  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
 POLICIES = ("scripted", "random", "zero", "kmp_prior")
@@ -51,6 +51,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--solver", default="mujoco", choices=SOLVERS)
+    ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES,
+                    help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes, SDFs on CUDA)")
     ap.add_argument("--no-time-obs", action="store_true", help="kmp_prior / checkpoint: policy input without time")
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"), help="kmp_prior: demonstrations, tables")
     ap.add_argument("--demos", type=Path, default=None, help="kmp_prior: your own demonstrations")
@@ -85,8 +87,10 @@ def main(argv=None) -> int:
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--checkpoint: the run's VAE: {e}")
         encoder = FrozenEncoder(vae)
+    if args.geometry == "mesh" and args.task not in SDF_VOXEL:
+        ap.error(f"--geometry mesh exists for {sorted(SDF_VOXEL)}, not {args.task} (its primitives are exact)")
     cfg = EnvConfig(task=args.task, family=args.env, action_dim=args.action_dim, num_envs=args.num_envs,
-                    device=args.device, seed=args.seed, sim=SimConfig(solver=args.solver),
+                    device=args.device, seed=args.seed, sim=SimConfig(solver=args.solver, geometry=args.geometry),
                     vision_latent_dim=encoder.latent_dim if encoder is not None else 0)
     env = AssemblyEnv(cfg)
     if encoder is not None:
@@ -119,7 +123,7 @@ def main(argv=None) -> int:
     result = evaluate(env, policy, args.episodes, video_frames=frames, camera=camera,
                       desc=f"{args.policy} {args.env} {args.action_dim}D")
     result.update(task=args.task, env=args.env, action_dim=args.action_dim, policy=args.policy,
-                  num_envs=args.num_envs, device=env.device, solver=args.solver, seed=args.seed,
+                  num_envs=args.num_envs, device=env.device, solver=args.solver, geometry=args.geometry, seed=args.seed,
                   time_obs=not args.no_time_obs, checkpoint=str(args.checkpoint) if args.checkpoint else None)
     print(json.dumps({k: v for k, v in result.items() if k != "per_episode"}, indent=2))
     if args.json is not None:

@@ -47,9 +47,14 @@ class PartsSim:
     num_worlds: int
 
 
-def build_parts(task: str, num_worlds: int = 1, config: SimConfig | None = None) -> PartsSim:
-    """The task stage alone, `num_worlds` copies, with the scene's contact settings."""
-    config = config or SimConfig(num_worlds=num_worlds, device="cpu")
+def build_parts(task: str, num_worlds: int | None = None, config: SimConfig | None = None) -> PartsSim:
+    """The task stage alone, `num_worlds` copies (default: the config's, else 1), with the
+    scene's contact settings."""
+    if config is None:
+        config = SimConfig(num_worlds=num_worlds or 1, device="cpu")
+    elif num_worlds is not None and num_worlds != config.num_worlds:
+        raise ValueError(f"num_worlds={num_worlds} disagrees with config.num_worlds={config.num_worlds}")
+    num_worlds = config.num_worlds
     template = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     template.add_usd(str(TASK_USD[task]))
     if config.geometry == "mesh":
@@ -184,7 +189,7 @@ def main(argv=None) -> int:
     else:
         from ..assets_usd.author import GEAR_MEDIUM_X, GEAR_TEETH
 
-        sim = build_parts("GearMesh", num_worlds=2, config=config(2))
+        sim = build_parts("GearMesh", config=config(2))
         pitch = 2 * math.pi / GEAR_TEETH["medium"]
         r = run_drive(sim, (GEAR_MEDIUM_X, 0.0, 0.03), [0.0, pitch / 2], 0.5, force_z=-1.0)
         for w, name in enumerate(("aligned", "misaligned")):

@@ -236,11 +236,18 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
 
 
 def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | None = None) -> list[int]:
-    """The mesh variant: switch off the primitive teeth / threads (and the cores and bores they
-    ride on) of the task's parts and add closed triangle meshes in their place, on the same
-    bodies; with `sdf_device` (a CUDA device) each mesh gets its SDF built there first. The hub,
-    shaft, plate and bolt head stay primitives. PegInsert has no mesh variant (its primitives
-    are exact). Returns the new shape indices."""
+    """The mesh variant: switch off the primitive teeth / threads of the task's parts and add
+    closed triangle meshes in their place, on the same bodies; with `sdf_device` (a CUDA device)
+    each mesh gets its SDF built there first. Returns the new shape indices.
+
+    The meshes collide only with each other (mesh-mesh: SDF on CUDA, the triangle BVH on a CPU):
+    the tooth flanks and thread flanks, the contacts the task is about. Everything else stays on
+    the primitives, which are exact for it: the gear's bore ring on its round shaft and flat
+    plate, the nut's hex on the finger pads, the hub in the fingers. Why: Newton pairs a mesh
+    with a primitive triangle by triangle and drops the triangles that face away from the
+    primitive's centre, which fails for a concave part: a solid disc mesh rests on a box plate
+    within 0.01 mm, the same disc with a bore sinks 2.5 mm to the plate's mid-plane
+    (docs/benchmarks.md). PegInsert has no mesh variant (its primitives are exact)."""
     from ..assets_usd import author
     from ..assets_usd import part_meshes as pm
 
@@ -272,7 +279,7 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
     z0, z1 = author.GEAR_BASE_HEIGHT, author.GEAR_BASE_HEIGHT + author.GEAR_HEIGHT
     added = []
     if task == "GearMesh":
-        off("medium_gear/tooth_", "medium_gear/bore_", "gear_base/small_", "gear_base/large_")
+        off("medium_gear/tooth_", "gear_base/small_", "gear_base/large_")
         width = author.gear_tooth_width()
 
         def outline(name):
@@ -291,7 +298,7 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
             added.append(builder.add_shape_mesh(-1, xform=xform, mesh=mesh(pm.extrude(outline(name), None, z0, z1)),
                                                 cfg=cfg(author.PART_FRICTION), label=root + f"gear_base/{name}_gear_mesh"))
     else:
-        off("nut/thread_", "nut/hex_", "bolt/thread_", "bolt/core")
+        off("nut/thread_", "bolt/thread_")
         major = author.THREAD_BOLT_RADIUS + author.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
         tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT
         rod = pm.threaded_rod(author.THREAD_PITCH, major, author.BOLT_BASE_HEIGHT, tip, chamfer=0.001)
@@ -301,6 +308,11 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
                                             label=root + "bolt/thread_mesh"))
         added.append(builder.add_shape_mesh(held, mesh=mesh(nut), cfg=cfg(author.NUT_FRICTION),
                                             label=root + "nut/thread_mesh"))
+    meshes = set(added)
+    for s in range(len(builder.shape_label)):
+        if s not in meshes and builder.shape_flags[s] & collide:
+            for m in added:
+                builder.add_shape_collision_filter_pair(m, s)
     return added
 
 
