@@ -40,6 +40,15 @@ def nut_model(wp_cpu):
     return build_parts("NutThread", num_worlds=1)
 
 
+@pytest.fixture(scope="module")
+def nut_mesh_model(wp_cpu):
+    """ISO-profile thread meshes on a CPU: no SDFs, the triangle BVH (scene.THREAD_MESH_GRID)."""
+    from vkgrl_newton.sim.parts import build_parts
+    from vkgrl_newton.sim.scene import SimConfig
+
+    return build_parts("NutThread", config=SimConfig(num_worlds=1, device="cpu", geometry="mesh"))
+
+
 def _shapes(model, prefix):
     return [i for i, lbl in enumerate(model.shape_label) if lbl.startswith(prefix)]
 
@@ -160,25 +169,34 @@ def test_gear_teeth_mesh_only_when_aligned():
 # ------------------------------------------------------------------ physics (MuJoCo-Warp on CPU)
 
 
-def test_nut_advances_one_pitch_per_turn(nut_model):
+# the mesh runs are short: the thread meshes cost ~0.4 s per frame on a CPU (docs/benchmarks.md)
+NUT_GEOMETRIES = [("primitives", 0.8, 0.4), ("mesh", 0.3, 0.15)]
+
+
+@pytest.mark.parametrize("geometry, duration, min_turns", NUT_GEOMETRIES)
+def test_nut_advances_one_pitch_per_turn(request, geometry, duration, min_turns):
     """Started resting on the bolt's top thread turn and turned clockwise under a 0.5 N push, the
-    nut screws down 2 mm per turn (Factory's M16 x 2) within 10 %, without tilting off the thread."""
+    nut screws down 2 mm per turn (Factory's M16 x 2) within 10 %, without tilting off the thread.
+    Both geometries: the capsule helices and the ISO-profile meshes."""
     from vkgrl_newton.sim.parts import advance_per_turn, nut_rest_height, run_drive
 
+    nut_model = request.getfixturevalue("nut_model" if geometry == "primitives" else "nut_mesh_model")
     yaw0 = math.pi / 2
-    r = run_drive(nut_model, (0.0, 0.0, nut_rest_height(yaw0)), yaw0, 0.8, force_z=-0.5,
+    r = run_drive(nut_model, (0.0, 0.0, nut_rest_height(yaw0)), yaw0, duration, force_z=-0.5,
                   omega_des=-2 * math.pi, torque_kd=1e-3)
     turns = (yaw0 - r.yaw[-1, 0]) / (2 * math.pi)
-    assert turns > 0.4  # it turned, clockwise
+    assert turns > min_turns  # it turned, clockwise
     assert advance_per_turn(r) == pytest.approx(M16_PITCH, rel=0.1)
     assert r.tilt.max() < math.radians(5.0)
     # and it stays on the axis (radial play 0.25 mm by design, author.py)
     assert np.hypot(r.pos[-1, 0, 0], r.pos[-1, 0, 1]) < 0.0005
 
 
-def test_nut_does_not_descend_without_turning(nut_model):
+@pytest.mark.parametrize("geometry", ["primitives", "mesh"])
+def test_nut_does_not_descend_without_turning(request, geometry):
     from vkgrl_newton.sim.parts import nut_rest_height, run_drive
 
+    nut_model = request.getfixturevalue("nut_model" if geometry == "primitives" else "nut_mesh_model")
     yaw0 = math.pi / 2
     z0 = nut_rest_height(yaw0)
     r = run_drive(nut_model, (0.0, 0.0, z0), yaw0, 0.3, force_z=-0.5)

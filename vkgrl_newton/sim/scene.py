@@ -40,6 +40,10 @@ GEOMETRIES = ("primitives", "mesh")
 SDF_VOXEL = {"GearMesh": 0.00025, "NutThread": 0.0001}  # m: a quarter of a tooth clearance, half a thread crest
 SDF_BAND = (-0.002, 0.002)  # m, narrow band of the SDFs
 SDF_MARGIN = 0.005  # m, AABB padding of the SDFs (more than any contact gap here)
+# Thread mesh grid (columns per turn, rows per pitch). With an SDF the grid only sets how exact the
+# field is; without one (a CPU) every vertex is a BVH query per substep, so the grid sets the cost:
+# 48 x 8 threads at 2.006 mm/turn like 96 x 32 and costs 0.43 s instead of 3.9 s per frame.
+THREAD_MESH_GRID = {"sdf": (96, 32), "bvh": (48, 8)}
 
 # Factory's reset posture (reference/isaaclab_factory_facts.md section 3); also the null-space target
 FACTORY_RESET_JOINTS = (1.5178e-3, -0.19651, -1.4364e-3, -1.9761, -2.7717e-4, 1.7796, 0.78556)
@@ -301,9 +305,11 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
         off("nut/thread_", "bolt/thread_")
         major = author.THREAD_BOLT_RADIUS + author.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
         tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT
-        rod = pm.threaded_rod(author.THREAD_PITCH, major, author.BOLT_BASE_HEIGHT, tip, chamfer=0.001)
+        columns, rows = THREAD_MESH_GRID["sdf" if sdf_device is not None else "bvh"]
+        rod = pm.threaded_rod(author.THREAD_PITCH, major, author.BOLT_BASE_HEIGHT, tip, chamfer=0.001,
+                              columns=columns, rows_per_pitch=rows)
         nut = pm.threaded_bore(author.THREAD_PITCH, major, 0.00015, author.NUT_HEIGHT, author.NUT_ACROSS_FLATS,
-                               countersink=0.0005)
+                               countersink=0.0005, columns=columns, rows_per_pitch=rows)
         added.append(builder.add_shape_mesh(-1, xform=nominal, mesh=mesh(rod), cfg=cfg(author.BOLT_FRICTION),
                                             label=root + "bolt/thread_mesh"))
         added.append(builder.add_shape_mesh(held, mesh=mesh(nut), cfg=cfg(author.NUT_FRICTION),
