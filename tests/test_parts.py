@@ -245,11 +245,13 @@ def test_mesh_variant_replaces_the_primitive_teeth_and_threads(wp_cpu, task, mes
     for suffix, body in meshes.items():
         s = labels.index(root + suffix)
         assert mesh.shape_type[s] == newton.GeoType.MESH and mesh.shape_flags[s] & collide
+        assert mesh.shape_flags[s] & int(newton.ShapeFlags.VISIBLE)
         assert mesh.shape_body[s] == (info["held"] if body == "held" else -1)
         assert (root + suffix) not in prim.shape_label
     for s, lbl in enumerate(labels):
         if any(lbl.startswith(root + p) for p in off_prefixes) and not lbl.endswith("_mesh"):
             assert not mesh.shape_flags[s] & collide, lbl
+            assert not mesh.shape_flags[s] & int(newton.ShapeFlags.VISIBLE), lbl  # the camera sees the mesh
     assert mesh.body_mass[info["held"]] == pytest.approx(prim.body_mass[info["held"]], rel=1e-9)
     fixed_mesh = [root + k for k, b in meshes.items() if b == -1]
     assert all(labels.index(m) in info["socket"] for m in fixed_mesh)  # re-placed with the fixed asset

@@ -216,6 +216,8 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     (["--sac", "batch_size=zero"], "not a valid int"),
     (["--sac", "batch_size=0"], "batch_size"),
     (["--resume"], "--resume needs --run-dir"),
+    (["--geometry", "mesh"], "--geometry mesh exists for ['GearMesh', 'NutThread'], not PegInsert"),
+    (["--geometry", "sdf"], "invalid choice"),
     (["--method", "sac", "--vae", "x.pt"], "--vae is for the vision methods"),
     (["--method", "vision_sac", "--vae", "no_such_vae.pt"], "does not exist"),
 ])
@@ -346,3 +348,21 @@ def test_plot_runs_mean_and_std_over_seeds(tmp_path):
         assert got["final_std"] == pytest.approx(np.std(vals), abs=1e-6)
     with pytest.raises(FileExistsError):
         plot_runs.plot(dirs, out)
+
+
+def test_run_geometry_is_part_of_a_mesh_runs_identity(run_py, tmp_path):
+    """--geometry mesh is recorded in the checkpoint's meta (a resume must match it) and keeps its
+    scripted demonstrations apart; the default leaves both as before, so older runs still resume."""
+    import argparse
+
+    from vkgrl_newton.agents.kgrl import demos_path_for
+    from vkgrl_newton.agents.sac import SAC_PRESETS
+
+    base = dict(task="GearMesh", method="kgrl", env="factory", action_dim=4, seed=0, num_envs=2, preset="quick",
+                no_time_obs=False)
+    prim = run_py.run_meta(argparse.Namespace(**base, geometry="primitives"), 8, SAC_PRESETS["quick"])
+    mesh = run_py.run_meta(argparse.Namespace(**base, geometry="mesh"), 8, SAC_PRESETS["quick"])
+    assert "geometry" not in prim and mesh["geometry"] == "mesh"
+    assert {k: v for k, v in mesh.items() if k != "geometry"} == prim
+    p, m = demos_path_for(tmp_path, "GearMesh", 16, 0), demos_path_for(tmp_path, "GearMesh", 16, 0, "mesh")
+    assert p.name == "demos_scripted_factory_n16_seed0.npz" and m.name == "demos_scripted_factory_n16_seed0_mesh.npz"

@@ -101,7 +101,8 @@ def main(argv=None) -> int:
     if args.policy in ("kmp_prior", "kgrl", "vision_kgrl"):
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
-        tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device)
+        tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device,
+                                       geometry=args.geometry)
         action_path = KGRLActionPath(tables, env)
     if payload is not None:
         from vkgrl_newton.agents.sac import SAC, SACConfig

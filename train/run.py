@@ -51,6 +51,7 @@ from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_che
 from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
 from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
+from vkgrl_newton.sim.scene import GEOMETRIES, SDF_VOXEL, SimConfig  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
 METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
@@ -86,6 +87,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256 "
                          "(kgrl methods default to warmup=policy, actor_init_std=0.1, log_std_max=-1.2)")
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES,
+                    help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes with SDFs on CUDA; "
+                         "the scripted demonstrations are recorded on it too)")
     ap.add_argument("--run-dir", type=Path, default=None,
                     help="default runs/train/<task>_<method>_<env>_<D>d_seed<S>_<date-time>")
     ap.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its last checkpoint")
@@ -146,6 +150,8 @@ def run_meta(args, obs_dim: int, sac_cfg) -> dict:
     meta = {"task": args.task, "method": args.method, "env": args.env, "action_dim": args.action_dim,
             "seed": args.seed, "num_envs": args.num_envs, "preset": args.preset, "time_obs": not args.no_time_obs,
             "obs_dim": obs_dim, "sac": dataclasses.asdict(sac_cfg)}
+    if args.geometry != "primitives":  # absent in the default case, so older checkpoints still resume
+        meta["geometry"] = args.geometry
     if uses_vision(args.method):
         meta["vision"] = {"vae": str(vae_path(args)), "latent_dim": VISION_LATENT_DIM}
     return meta
@@ -198,6 +204,8 @@ def main(argv=None) -> int:
                 setattr(args, name, meta[name])
         if "no_time_obs" not in given:
             args.no_time_obs = not meta["time_obs"]
+        if "geometry" not in given:
+            args.geometry = meta.get("geometry", "primitives")
         if "vae" not in given and "vision" in meta:
             args.vae = Path(meta["vision"]["vae"])
         for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every
@@ -209,6 +217,8 @@ def main(argv=None) -> int:
     if reason is not None:
         print(f"train/run.py: {reason}", file=sys.stderr)
         return 2
+    if args.geometry == "mesh" and args.task not in SDF_VOXEL:
+        ap.error(f"--geometry mesh exists for {sorted(SDF_VOXEL)}, not {args.task} (its primitives are exact)")
     if args.eval_episodes < 0:
         ap.error("--eval-episodes must be >= 0")
     if args.num_demos < 2:
@@ -282,7 +292,8 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
             raise SystemExit(f"train/run.py: the VAE's latent has {encoder.latent_dim} dimensions, the vision "
                              f"methods use {args.latent_dim} (thesis 5.6)")
     env = AssemblyEnv(EnvConfig(task=args.task, family=args.env, action_dim=args.action_dim, num_envs=args.num_envs,
-                                device=args.device, seed=args.seed, vision_latent_dim=args.latent_dim))
+                                device=args.device, seed=args.seed, vision_latent_dim=args.latent_dim,
+                                sim=SimConfig(geometry=args.geometry)))
     if encoder is not None:
         from vkgrl_newton.vision.latent import CameraLatent
 
@@ -292,7 +303,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos,
-                                       num_demos=args.num_demos, device=args.device, log=log)
+                                       num_demos=args.num_demos, device=args.device, geometry=args.geometry, log=log)
         action_path = KGRLActionPath(tables, env)
     step_fn = action_path.step if action_path is not None else env.step
     time_obs = not args.no_time_obs

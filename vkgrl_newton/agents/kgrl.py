@@ -75,29 +75,33 @@ class KGRLActionPath:
         return self.env.step_pose(*self.pose(actions))
 
 
-def demos_path_for(cache_dir, task: str, num_demos: int, seed: int) -> Path:
-    return Path(cache_dir) / task / f"demos_scripted_factory_n{num_demos}_seed{seed}.npz"
+def demos_path_for(cache_dir, task: str, num_demos: int, seed: int, geometry: str = "primitives") -> Path:
+    """Where the scripted demonstrations are cached; the mesh variant's apart (its parts differ)."""
+    suffix = "" if geometry == "primitives" else f"_{geometry}"
+    return Path(cache_dir) / task / f"demos_scripted_factory_n{num_demos}_seed{seed}{suffix}.npz"
 
 
 def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path | None = None, num_demos: int = 16,
                        num_envs: int = 16, device: str | None = None, seed: int = 0,
-                       log=print) -> tuple[KMPTables, Path]:
+                       geometry: str = "primitives", log=print) -> tuple[KMPTables, Path]:
     """The task's KMP tables, with the demonstrations they come from recorded first if missing.
 
     demos: a demonstration npz of your own; None records `num_demos` scripted ones in the
-    Factory env (6D, `num_envs` worlds) into `cache_dir/<task>/` once and reuses them. The tables
+    Factory env (6D, `num_envs` worlds, the parts' collision `geometry`: sim.scene.GEOMETRIES)
+    into `cache_dir/<task>/` once and reuses them. The tables
     are cached beside the demonstrations (kmp.prior.load_or_fit_prior: keyed by content).
     Returns (tables, demonstration path).
     """
     if demos is None:
-        path = demos_path_for(cache_dir, task, num_demos, seed)
+        path = demos_path_for(cache_dir, task, num_demos, seed, geometry)
         if not path.exists():
             from ..envs.assembly_env import AssemblyEnv, EnvConfig
             from ..envs.demonstrations import record_demonstrations
+            from ..sim.scene import SimConfig
 
             log(f"recording {num_demos} scripted {task} demonstrations into {path} (once; cached)")
             env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_envs, device=device,
-                                        seed=seed))
+                                        seed=seed, sim=SimConfig(geometry=geometry)))
             demo_set, episodes = record_demonstrations(env, num_demos, seed=seed, max_episodes=max(4, 3 * num_demos // num_envs + 2))
             if demo_set is None or len(demo_set.demo_lengths) < num_demos:
                 got = 0 if demo_set is None else len(demo_set.demo_lengths)

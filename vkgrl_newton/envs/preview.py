@@ -19,15 +19,17 @@ import numpy as np
 
 from .._io import atomic_write
 from ..sim.camera import TASK_CAMERAS, TaskCamera
+from ..sim.scene import GEOMETRIES, SimConfig
 from ..tasks import TASKS
 from .assembly_env import AssemblyEnv, EnvConfig
 from .scripted import ScriptedInserter
 
 
-def render_preview(task: str, num_worlds: int, steps: int, seed: int = 0, device: str | None = None) -> np.ndarray:
+def render_preview(task: str, num_worlds: int, steps: int, seed: int = 0, device: str | None = None,
+                   geometry: str = "primitives") -> np.ndarray:
     """uint8 (H, num_worlds * W, 3): the task camera of each world after `steps` scripted steps."""
     env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_worlds, device=device,
-                                seed=seed))
+                                seed=seed, sim=SimConfig(geometry=geometry)))
     env.reset()
     policy = ScriptedInserter(seed=seed)
     policy.reset(env)
@@ -46,6 +48,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=18, help="scripted control steps before rendering")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES, help="GearMesh/NutThread part geometry")
     args = ap.parse_args(argv)
     if args.num_worlds < 1:
         ap.error("--num-worlds must be >= 1")
@@ -53,7 +56,7 @@ def main(argv=None) -> int:
         ap.error("--steps must be >= 0")
     if args.out.exists():
         ap.error(f"--out {args.out} exists; choose another path (files are never overwritten)")
-    tiled = render_preview(args.task, args.num_worlds, args.steps, args.seed, args.device)
+    tiled = render_preview(args.task, args.num_worlds, args.steps, args.seed, args.device, args.geometry)
 
     import matplotlib.pyplot as plt
 

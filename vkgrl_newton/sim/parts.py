@@ -2,6 +2,7 @@
 
     python -m vkgrl_newton.sim.parts --task NutThread     # advance per turn under push + torque
     python -m vkgrl_newton.sim.parts --task GearMesh      # blocked when misaligned, slides when aligned
+    python -m vkgrl_newton.sim.parts --task NutThread --geometry mesh   # the same with the part meshes
 
 The task stage is loaded on its own (fixed asset static at its authored pose, held asset a free
 body) with the contact settings of the full scene (`scene.apply_contact_settings`) and stepped

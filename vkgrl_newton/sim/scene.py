@@ -262,13 +262,16 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
     labels = list(builder.shape_label)
     collide = int(newton.ShapeFlags.COLLIDE_SHAPES)
 
-    def off(*prefixes):
+    def off(*prefixes):  # neither collide nor render: the camera sees the meshes in their place
         for s, lbl in enumerate(labels):
             if any(lbl.startswith(root + p) for p in prefixes):
-                builder.shape_flags[s] &= ~collide
+                builder.shape_flags[s] &= ~(collide | int(newton.ShapeFlags.VISIBLE))
 
     def cfg(mu):
         return newton.ModelBuilder.ShapeConfig(density=0.0, mu=mu)  # mass stays the authored MassAPI's
+
+    def colour(prefix):  # the authored colour of the part the mesh stands in for
+        return builder.shape_color[next(s for s, lbl in enumerate(labels) if lbl.startswith(root + prefix))]
 
     def mesh(vf):
         v, f = vf
@@ -293,14 +296,16 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
         a = 2 * np.pi * np.arange(48) / 48
         bore = np.column_stack([author.GEAR_BORE_APOTHEM * np.cos(a), author.GEAR_BORE_APOTHEM * np.sin(a)])
         added.append(builder.add_shape_mesh(held, mesh=mesh(pm.extrude(outline("medium"), bore, z0, z1)),
-                                            cfg=cfg(author.PART_FRICTION), label=root + "medium_gear/gear_mesh"))
+                                            cfg=cfg(author.PART_FRICTION), color=colour("medium_gear/tooth_"),
+                                            label=root + "medium_gear/gear_mesh"))
         for name, (cx, cy) in author.gear_centres().items():
             if name == "medium":
                 continue
             xform = wp.transform((author.SOCKET_NOMINAL_POS[0] + cx, author.SOCKET_NOMINAL_POS[1] + cy,
                                   author.SOCKET_NOMINAL_POS[2]), wp.quat_identity())
             added.append(builder.add_shape_mesh(-1, xform=xform, mesh=mesh(pm.extrude(outline(name), None, z0, z1)),
-                                                cfg=cfg(author.PART_FRICTION), label=root + f"gear_base/{name}_gear_mesh"))
+                                                cfg=cfg(author.PART_FRICTION), color=colour(f"gear_base/{name}_"),
+                                                label=root + f"gear_base/{name}_gear_mesh"))
     else:
         off("nut/thread_", "bolt/thread_")
         major = author.THREAD_BOLT_RADIUS + author.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
@@ -311,9 +316,9 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
         nut = pm.threaded_bore(author.THREAD_PITCH, major, 0.00015, author.NUT_HEIGHT, author.NUT_ACROSS_FLATS,
                                countersink=0.0005, columns=columns, rows_per_pitch=rows)
         added.append(builder.add_shape_mesh(-1, xform=nominal, mesh=mesh(rod), cfg=cfg(author.BOLT_FRICTION),
-                                            label=root + "bolt/thread_mesh"))
+                                            color=colour("bolt/thread_"), label=root + "bolt/thread_mesh"))
         added.append(builder.add_shape_mesh(held, mesh=mesh(nut), cfg=cfg(author.NUT_FRICTION),
-                                            label=root + "nut/thread_mesh"))
+                                            color=colour("nut/hex_"), label=root + "nut/thread_mesh"))
     meshes = set(added)
     for s in range(len(builder.shape_label)):
         if s not in meshes and builder.shape_flags[s] & collide:
