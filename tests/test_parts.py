@@ -264,3 +264,37 @@ def test_mesh_variant_replaces_the_primitive_teeth_and_threads(wp_cpu, task, mes
     for m in mesh_shapes:
         assert all((min(m, s), max(m, s)) in filtered for s in others)
         assert not any((min(m, n), max(m, n)) in filtered for n in mesh_shapes if n != m)
+
+
+@pytest.mark.parametrize("task", ["GearMesh", "NutThread"])
+def test_mesh_variant_builds_an_sdf_per_mesh_on_cuda(wp_cpu, task, monkeypatch):
+    """The SDF build runs on CUDA only (Newton raises on a CPU), so here `Mesh.build_sdf` is
+    replaced by a recorder that binds each call to Newton's real signature: every part mesh gets
+    one SDF with the task's voxel size, and the threads use the finer SDF grid."""
+    import inspect
+
+    import newton
+
+    from vkgrl_newton.sim import scene
+
+    real = inspect.signature(newton.Mesh.build_sdf)
+    calls = []
+
+    def record(self, *args, **kwargs):
+        real.bind(self, *args, **kwargs)  # TypeError if Newton's API no longer takes these
+        calls.append((len(self.vertices), kwargs))
+
+    monkeypatch.setattr(newton.Mesh, "build_sdf", record)
+    builder = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    from vkgrl_newton.assets_usd import TASK_USD
+
+    builder.add_usd(str(TASK_USD[task]))
+    added = scene.add_part_meshes(builder, task, sdf_device="cuda:0")
+    assert len(calls) == len(added) == (3 if task == "GearMesh" else 2)
+    for _, kw in calls:
+        assert kw["device"] == "cuda:0" and kw["target_voxel_size"] == scene.SDF_VOXEL[task]
+        assert kw["narrow_band_range"] == scene.SDF_BAND and kw["margin"] == scene.SDF_MARGIN
+    if task == "NutThread":  # the threads on the SDF grid: columns x rows over the shank, + 2 cap centres
+        columns, rows_per_pitch = scene.THREAD_MESH_GRID["sdf"]
+        rows = math.ceil(author.BOLT_SHANK_HEIGHT / author.THREAD_PITCH * rows_per_pitch - 1e-9) + 1
+        assert calls[0][0] == columns * rows + 2
