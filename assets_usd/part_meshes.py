@@ -142,15 +142,23 @@ def _radial_grid(radius: np.ndarray, theta: np.ndarray, z: np.ndarray):
 
 
 def threaded_rod(pitch: float, major_radius: float, z0: float, z1: float, chamfer: float,
-                 columns: int = 96, rows_per_pitch: int = 32) -> tuple[np.ndarray, np.ndarray]:
-    """The bolt's threaded shank from z0 to z1, the top chamfered at 45 degrees down to the root
-    radius over `chamfer`; flat caps (fans) at both ends."""
+                 thread_top: float | None = None, columns: int = 96,
+                 rows_per_pitch: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """The bolt's threaded shank from z0 to z1; flat caps (fans) at both ends.
+
+    thread_top None: threaded to the top, chamfered at 45 degrees down to the root radius over
+    `chamfer`. thread_top < z1: the thread runs out the same way at thread_top, and above it is a
+    plain pilot of root radius with a 45-degree `chamfer` / 2 at its top edge: it centres a nut
+    within the thread clearance before the nut's thread meets the bolt's (a dog point)."""
     theta = 2 * math.pi * np.arange(columns) / columns
     rows = int(math.ceil((z1 - z0) / pitch * rows_per_pitch)) + 1
     z = np.linspace(z0, z1, rows)
     r = iso_thread_radius(theta[None, :], z[:, None], pitch, major_radius)
     root = major_radius - 5.0 / 8.0 * pitch * math.sqrt(3.0) / 2.0
-    r = np.minimum(r, root + np.maximum(z1 - z[:, None], 0.0) * (major_radius - root + chamfer) / chamfer)
+    top = z1 if thread_top is None else thread_top
+    r = np.minimum(r, root + np.maximum(top - z[:, None], 0.0) * (major_radius - root + chamfer) / chamfer)
+    if thread_top is not None:
+        r = np.minimum(r, root - chamfer / 2 + np.maximum(z1 - z[:, None], 0.0))
     verts, faces = _radial_grid(r, theta, z)
     nt = columns
     bottom = len(verts)

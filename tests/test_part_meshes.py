@@ -94,6 +94,21 @@ def test_bolt_and_nut_meshes_closed_and_sized_and_they_clear():
     # the mesh is a 96-gon per row: its area per row is r^2/2 * 96 sin(2 pi / 96) of a circle's pi r^2
     polygon = 96 * math.sin(2 * math.pi / 96) / (2 * math.pi)
     assert rod.volume == pytest.approx(_field_volume(rod_r, z0, z1) * polygon, rel=5e-3)
+    # with a pilot: thread out at 33.5 mm, root-radius pilot above with a 0.5 mm chamfer at the tip
+    top = 0.0335
+    piloted = _check_closed(*pm.threaded_rod(P, R_MAJOR, z0, z1, chamfer, thread_top=top))
+
+    def piloted_r(th, z):
+        r = pm.iso_thread_radius(th, z, P, R_MAJOR)
+        r = np.minimum(r, root + np.maximum(top - z, 0.0) * (R_MAJOR - root + chamfer) / chamfer)
+        return np.minimum(r, root - chamfer / 2 + np.maximum(z1 - z, 0.0))
+
+    assert piloted.volume == pytest.approx(_field_volume(piloted_r, z0, z1) * polygon, rel=5e-3)
+    v = piloted.vertices
+    r_v = np.hypot(v[:, 0], v[:, 1])
+    above = v[:, 2] > top + 1e-9
+    assert r_v[above].max() == pytest.approx(root, rel=1e-6)  # a plain pilot above the thread
+    assert r_v[v[:, 2] < top - 0.001].max() == pytest.approx(R_MAJOR, rel=1e-3)  # full thread below
     nut = _check_closed(*pm.threaded_bore(P, R_MAJOR, 0.00015, 0.010, 0.024, 0.0005))
     hex_area = _shoelace(pm.hex_outline(0.024))
     assert hex_area == pytest.approx(math.sqrt(3) / 2 * 0.024**2, rel=1e-12)  # 24 mm across flats

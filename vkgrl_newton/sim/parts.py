@@ -182,7 +182,9 @@ def main(argv=None) -> int:
         from ..assets_usd.author import THREAD_BOLT_TOP, THREAD_NUT_BOTTOM, THREAD_PITCH
 
         sim = build_parts("NutThread", config=config(1))
-        r = run_drive(sim, (0.0, 0.0, nut_rest_height(math.pi / 2)), math.pi / 2, 1.0, force_z=-0.5, omega_des=-2 * math.pi, torque_kd=1e-3)
+        # engaged on the bolt's top turn; the mesh bolt's top turn is the thread's runout: one lower
+        z0 = nut_rest_height(math.pi / 2) - (THREAD_PITCH if args.geometry == "mesh" else 0.0)
+        r = run_drive(sim, (0.0, 0.0, z0), math.pi / 2, 1.0, force_z=-0.5, omega_des=-2 * math.pi, torque_kd=1e-3)
         turned = (math.pi / 2 - r.yaw[-1, 0]) / (2 * math.pi)
         print(f"clockwise turns {turned:.2f}, dz {1e3 * (r.pos[-1, 0, 2] - r.pos[0, 0, 2]):.2f} mm, "
               f"advance {1e3 * advance_per_turn(r):.3f} mm/turn, max tilt {math.degrees(r.tilt.max()):.2f} deg, "

@@ -311,8 +311,10 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
         major = author.THREAD_BOLT_RADIUS + author.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
         tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT
         columns, rows = THREAD_MESH_GRID["sdf" if sdf_device is not None else "bvh"]
+        # threaded up to where the capsule thread ends, a pilot above (as the primitives' core): both
+        # variants land the nut at the same height, centred, and it descends only by turning
         rod = pm.threaded_rod(author.THREAD_PITCH, major, author.BOLT_BASE_HEIGHT, tip, chamfer=0.001,
-                              columns=columns, rows_per_pitch=rows)
+                              thread_top=author.THREAD_BOLT_TOP, columns=columns, rows_per_pitch=rows)
         nut = pm.threaded_bore(author.THREAD_PITCH, major, 0.00015, author.NUT_HEIGHT, author.NUT_ACROSS_FLATS,
                                countersink=0.0005, columns=columns, rows_per_pitch=rows)
         added.append(builder.add_shape_mesh(-1, xform=nominal, mesh=mesh(rod), cfg=cfg(author.BOLT_FRICTION),
