@@ -150,6 +150,8 @@ def threaded_rod(pitch: float, major_radius: float, z0: float, z1: float, chamfe
     `chamfer`. thread_top < z1: the thread runs out the same way at thread_top, and above it is a
     plain pilot of root radius with a 45-degree `chamfer` / 2 at its top edge: it centres a nut
     within the thread clearance before the nut's thread meets the bolt's (a dog point)."""
+    if thread_top is not None and not z0 < thread_top <= z1:
+        raise ValueError(f"thread_top must lie in ({z0}, {z1}], got {thread_top}")
     theta = 2 * math.pi * np.arange(columns) / columns
     rows = int(math.ceil((z1 - z0) / pitch * rows_per_pitch)) + 1
     z = np.linspace(z0, z1, rows)

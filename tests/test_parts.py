@@ -258,6 +258,10 @@ def test_mesh_variant_replaces_the_primitive_teeth_and_threads(wp_cpu, task, mes
     assert all(labels.index(m) in info["socket"] for m in fixed_mesh)  # re-placed with the fixed asset
     kept = [s for s, lbl in enumerate(labels) if any(lbl.startswith(root + p) for p in kept_prefixes)]
     assert kept and all(mesh.shape_flags[s] & collide for s in kept)
+    visible = int(newton.ShapeFlags.VISIBLE)
+    for s in kept:  # inside a mesh (bore ring, hex) they are not drawn; the hub, core stay visible
+        inside = labels[s].startswith((root + "medium_gear/bore_", root + "nut/hex_"))
+        assert bool(mesh.shape_flags[s] & visible) != inside, labels[s]
     mesh_shapes = {labels.index(root + k) for k in meshes}
     others = {s for s in range(len(labels)) if s not in mesh_shapes and mesh.shape_flags[s] & collide}
     assert set(info["pads"]) <= others and set(kept) <= others
@@ -297,5 +301,6 @@ def test_mesh_variant_builds_an_sdf_per_mesh_on_cuda(wp_cpu, task, monkeypatch):
         assert kw["narrow_band_range"] == scene.SDF_BAND and kw["margin"] == scene.SDF_MARGIN
     if task == "NutThread":  # the threads on the SDF grid: columns x rows over the shank, + 2 cap centres
         columns, rows_per_pitch = scene.THREAD_MESH_GRID["sdf"]
-        rows = math.ceil(author.BOLT_SHANK_HEIGHT / author.THREAD_PITCH * rows_per_pitch - 1e-9) + 1
+        tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT  # as scene.add_part_meshes and threaded_rod
+        rows = int(math.ceil((tip - author.BOLT_BASE_HEIGHT) / author.THREAD_PITCH * rows_per_pitch)) + 1
         assert calls[0][0] == columns * rows + 2

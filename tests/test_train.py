@@ -218,6 +218,7 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     (["--resume"], "--resume needs --run-dir"),
     (["--geometry", "mesh"], "--geometry mesh exists for ['GearMesh', 'NutThread'], not PegInsert"),
     (["--geometry", "sdf"], "invalid choice"),
+    (["--task", "GearMesh", "--method", "vision_kgrl", "--geometry", "mesh"], "--geometry mesh is for the sac and kgrl"),
     (["--method", "sac", "--vae", "x.pt"], "--vae is for the vision methods"),
     (["--method", "vision_sac", "--vae", "no_such_vae.pt"], "does not exist"),
 ])
@@ -246,7 +247,8 @@ def test_run_vision_kgrl_with_a_given_vae_and_evaluate_its_checkpoint(run_py, wp
     assert evaluate_py.main(["--checkpoint", str(run_dir / "checkpoints" / "last.pt"), "--num-envs", "2",
                              "--episodes", "1", "--device", "cpu", "--demos", str(peg_demos_file),
                              "--json", str(out)]) == 0
-    assert json.loads(out.read_text())["policy"] == "vision_kgrl"
+    result = json.loads(out.read_text())
+    assert result["policy"] == "vision_kgrl" and result["geometry"] == "primitives"  # the run's (not stored)
 
 
 def test_run_vae_of_another_task_is_an_argparse_error(run_py, tmp_path, capsys):
@@ -364,5 +366,31 @@ def test_run_geometry_is_part_of_a_mesh_runs_identity(run_py, tmp_path):
     mesh = run_py.run_meta(argparse.Namespace(**base, geometry="mesh"), 8, SAC_PRESETS["quick"])
     assert "geometry" not in prim and mesh["geometry"] == "mesh"
     assert {k: v for k, v in mesh.items() if k != "geometry"} == prim
-    p, m = demos_path_for(tmp_path, "GearMesh", 16, 0), demos_path_for(tmp_path, "GearMesh", 16, 0, "mesh")
-    assert p.name == "demos_scripted_factory_n16_seed0.npz" and m.name == "demos_scripted_factory_n16_seed0_mesh.npz"
+    p = demos_path_for(tmp_path, "GearMesh", 16, 0)
+    bvh = demos_path_for(tmp_path, "GearMesh", 16, 0, "mesh", device="cpu")
+    sdf = demos_path_for(tmp_path, "GearMesh", 16, 0, "mesh", device="cuda:0")
+    assert p.name == "demos_scripted_factory_n16_seed0.npz"
+    assert (bvh.name, sdf.name) == ("demos_scripted_factory_n16_seed0_mesh_bvh.npz",
+                                    "demos_scripted_factory_n16_seed0_mesh_sdf.npz")
+
+
+def test_run_resume_with_another_geometry_is_refused(run_py, tmp_path, capsys):
+    """A mesh run's checkpoint resumed with --geometry primitives stops before anything is built,
+    naming the field."""
+    import argparse
+
+    from vkgrl_newton.agents.checkpoint import CHECKPOINT_FORMAT, save_checkpoint
+    from vkgrl_newton.agents.sac import SAC_PRESETS
+
+    args = argparse.Namespace(task="GearMesh", method="kgrl", env="factory", action_dim=4, seed=0, num_envs=2,
+                              preset="quick", no_time_obs=False, geometry="mesh")
+    meta = run_py.run_meta(args, run_py.observation_dim("factory", 0), SAC_PRESETS["quick"])
+    run_dir = tmp_path / "mesh_run"
+    save_checkpoint(run_dir / "checkpoints" / "last.pt",
+                    {"format": CHECKPOINT_FORMAT, "meta": meta, "counters": {}, "agent": {}, "rng": {}})
+    with pytest.raises(SystemExit) as exc:
+        run_py.main(["--run-dir", str(run_dir), "--resume", "--geometry", "primitives", "--device", "cpu"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "belongs to a different run; geometry: checkpoint 'mesh', now 'primitives'" in err
+    assert err.count("checkpoint '") == 1  # nothing else differs

@@ -51,8 +51,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--solver", default="mujoco", choices=SOLVERS)
-    ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES,
-                    help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes, SDFs on CUDA)")
+    ap.add_argument("--geometry", default=None, choices=GEOMETRIES,
+                    help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes, SDFs on CUDA); "
+                         "default: the checkpoint's, else primitives (given, it evaluates a policy on the other one)")
     ap.add_argument("--no-time-obs", action="store_true", help="kmp_prior / checkpoint: policy input without time")
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"), help="kmp_prior: demonstrations, tables")
     ap.add_argument("--demos", type=Path, default=None, help="kmp_prior: your own demonstrations")
@@ -76,6 +77,10 @@ def main(argv=None) -> int:
         args.task, args.env, args.action_dim = meta["task"], meta["env"], meta["action_dim"]
         args.no_time_obs = not meta["time_obs"]
         args.policy = meta["method"]
+        if args.geometry is None:
+            args.geometry = meta.get("geometry", "primitives")
+    if args.geometry is None:
+        args.geometry = "primitives"
 
     vision = payload["meta"].get("vision") if payload is not None else None
     encoder = None

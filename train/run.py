@@ -219,6 +219,9 @@ def main(argv=None) -> int:
         return 2
     if args.geometry == "mesh" and args.task not in SDF_VOXEL:
         ap.error(f"--geometry mesh exists for {sorted(SDF_VOXEL)}, not {args.task} (its primitives are exact)")
+    if args.geometry == "mesh" and uses_vision(args.method):
+        ap.error(f"--geometry mesh is for the sac and kgrl methods: the image sets and VAEs of {args.method} "
+                 "are made on the primitives")
     if args.eval_episodes < 0:
         ap.error("--eval-episodes must be >= 0")
     if args.num_demos < 2:
@@ -260,7 +263,10 @@ def main(argv=None) -> int:
             saved = dict(payload["meta"])
             # a checkpoint from before a SACConfig field existed holds that field's default
             saved["sac"] = dataclasses.asdict(SACConfig(**saved["sac"]))
-            check_meta(saved, run_meta(args, args.obs_dim, args.sac_config), ckpt_path)
+            now = run_meta(args, args.obs_dim, args.sac_config)
+            for m in (saved, now):  # the default geometry is not stored; name it in a mismatch
+                m.setdefault("geometry", "primitives")
+            check_meta(saved, now, ckpt_path)
         except ValueError as e:
             ap.error(f"--resume: {e}")
     return train(args, run_dir, ckpt_path, payload)

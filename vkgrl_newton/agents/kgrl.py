@@ -75,9 +75,15 @@ class KGRLActionPath:
         return self.env.step_pose(*self.pose(actions))
 
 
-def demos_path_for(cache_dir, task: str, num_demos: int, seed: int, geometry: str = "primitives") -> Path:
-    """Where the scripted demonstrations are cached; the mesh variant's apart (its parts differ)."""
-    suffix = "" if geometry == "primitives" else f"_{geometry}"
+def demos_path_for(cache_dir, task: str, num_demos: int, seed: int, geometry: str = "primitives",
+                   device: str | None = None) -> Path:
+    """Where the scripted demonstrations are cached. The mesh variant's apart, per contact path
+    (SDF on CUDA, the triangle BVH and a coarser thread grid on a CPU: not the same physics)."""
+    suffix = ""
+    if geometry != "primitives":
+        from ..sim.scene import default_device
+
+        suffix = f"_{geometry}_{'sdf' if str(device or default_device()).startswith('cuda') else 'bvh'}"
     return Path(cache_dir) / task / f"demos_scripted_factory_n{num_demos}_seed{seed}{suffix}.npz"
 
 
@@ -93,7 +99,7 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
     Returns (tables, demonstration path).
     """
     if demos is None:
-        path = demos_path_for(cache_dir, task, num_demos, seed, geometry)
+        path = demos_path_for(cache_dir, task, num_demos, seed, geometry, device)
         if not path.exists():
             from ..envs.assembly_env import AssemblyEnv, EnvConfig
             from ..envs.demonstrations import record_demonstrations

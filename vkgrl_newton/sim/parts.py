@@ -52,7 +52,7 @@ def build_parts(task: str, num_worlds: int | None = None, config: SimConfig | No
     """The task stage alone, `num_worlds` copies (default: the config's, else 1), with the
     scene's contact settings."""
     if config is None:
-        config = SimConfig(num_worlds=num_worlds or 1, device="cpu")
+        config = SimConfig(num_worlds=1 if num_worlds is None else num_worlds, device="cpu")
     elif num_worlds is not None and num_worlds != config.num_worlds:
         raise ValueError(f"num_worlds={num_worlds} disagrees with config.num_worlds={config.num_worlds}")
     num_worlds = config.num_worlds

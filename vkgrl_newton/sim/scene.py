@@ -242,7 +242,8 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
 def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | None = None) -> list[int]:
     """The mesh variant: switch off the primitive teeth / threads of the task's parts and add
     closed triangle meshes in their place, on the same bodies; with `sdf_device` (a CUDA device)
-    each mesh gets its SDF built there first. Returns the new shape indices.
+    each mesh gets its SDF built there first. Returns the new shape indices. Call it after every
+    other shape is added: the filter pairs cover the colliding shapes that exist at the call.
 
     The meshes collide only with each other (mesh-mesh: SDF on CUDA, the triangle BVH on a CPU):
     the tooth flanks and thread flanks, the contacts the task is about. Everything else stays on
@@ -271,7 +272,15 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
         return newton.ModelBuilder.ShapeConfig(density=0.0, mu=mu)  # mass stays the authored MassAPI's
 
     def colour(prefix):  # the authored colour of the part the mesh stands in for
-        return builder.shape_color[next(s for s, lbl in enumerate(labels) if lbl.startswith(root + prefix))]
+        hit = next((s for s, lbl in enumerate(labels) if lbl.startswith(root + prefix)), None)
+        if hit is None:
+            raise ValueError(f"{task} stage has no shape {root + prefix}*; re-author it (assets_usd/author.py)")
+        return builder.shape_color[hit]
+
+    def hide(*prefixes):  # still colliding, but drawn by the mesh that encloses them
+        for s, lbl in enumerate(labels):
+            if any(lbl.startswith(root + p) for p in prefixes):
+                builder.shape_flags[s] &= ~int(newton.ShapeFlags.VISIBLE)
 
     def mesh(vf):
         v, f = vf
@@ -287,6 +296,7 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
     added = []
     if task == "GearMesh":
         off("medium_gear/tooth_", "gear_base/small_", "gear_base/large_")
+        hide("medium_gear/bore_")
         width = author.gear_tooth_width()
 
         def outline(name):
@@ -308,6 +318,7 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
                                                 label=root + f"gear_base/{name}_gear_mesh"))
     else:
         off("nut/thread_", "bolt/thread_")
+        hide("nut/hex_")
         major = author.THREAD_BOLT_RADIUS + author.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
         tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT
         columns, rows = THREAD_MESH_GRID["sdf" if sdf_device is not None else "bvh"]
