@@ -216,7 +216,7 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     (["--sac", "batch_size=zero"], "not a valid int"),
     (["--sac", "batch_size=0"], "batch_size"),
     (["--resume"], "--resume needs --run-dir"),
-    (["--geometry", "mesh"], "--geometry mesh exists for ['GearMesh', 'NutThread'], not PegInsert"),
+    (["--geometry", "mesh"], "--geometry 'mesh' exists for ['GearMesh', 'NutThread'], not PegInsert"),
     (["--geometry", "sdf"], "invalid choice"),
     (["--task", "GearMesh", "--method", "vision_kgrl", "--geometry", "mesh"], "--geometry mesh is for the sac and kgrl"),
     (["--method", "sac", "--vae", "x.pt"], "--vae is for the vision methods"),

@@ -33,7 +33,7 @@ from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,  # noqa: E402
                                             ZeroPolicy, evaluate, write_video)
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
-from vkgrl_newton.sim.scene import GEOMETRIES, SDF_VOXEL, SOLVERS, SimConfig  # noqa: E402
+from vkgrl_newton.sim.scene import GEOMETRIES, SOLVERS, SimConfig, geometry_error  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
 POLICIES = ("scripted", "random", "zero", "kmp_prior")
@@ -92,8 +92,8 @@ def main(argv=None) -> int:
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--checkpoint: the run's VAE: {e}")
         encoder = FrozenEncoder(vae)
-    if args.geometry == "mesh" and args.task not in SDF_VOXEL:
-        ap.error(f"--geometry mesh exists for {sorted(SDF_VOXEL)}, not {args.task} (its primitives are exact)")
+    if geometry_error(args.task, args.geometry):
+        ap.error(f"--{geometry_error(args.task, args.geometry)}")
     cfg = EnvConfig(task=args.task, family=args.env, action_dim=args.action_dim, num_envs=args.num_envs,
                     device=args.device, seed=args.seed, sim=SimConfig(solver=args.solver, geometry=args.geometry),
                     vision_latent_dim=encoder.latent_dim if encoder is not None else 0)

@@ -51,7 +51,7 @@ from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_che
 from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
 from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
-from vkgrl_newton.sim.scene import GEOMETRIES, SDF_VOXEL, SimConfig  # noqa: E402
+from vkgrl_newton.sim.scene import GEOMETRIES, SimConfig, geometry_error  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
 METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
@@ -217,8 +217,8 @@ def main(argv=None) -> int:
     if reason is not None:
         print(f"train/run.py: {reason}", file=sys.stderr)
         return 2
-    if args.geometry == "mesh" and args.task not in SDF_VOXEL:
-        ap.error(f"--geometry mesh exists for {sorted(SDF_VOXEL)}, not {args.task} (its primitives are exact)")
+    if geometry_error(args.task, args.geometry):
+        ap.error(f"--{geometry_error(args.task, args.geometry)}")
     if args.geometry == "mesh" and uses_vision(args.method):
         ap.error(f"--geometry mesh is for the sac and kgrl methods: the image sets and VAEs of {args.method} "
                  "are made on the primitives")

@@ -19,7 +19,7 @@ import numpy as np
 
 from .._io import atomic_write
 from ..sim.camera import TASK_CAMERAS, TaskCamera
-from ..sim.scene import GEOMETRIES, SDF_VOXEL, SimConfig
+from ..sim.scene import GEOMETRIES, SimConfig, geometry_error
 from ..tasks import TASKS
 from .assembly_env import AssemblyEnv, EnvConfig
 from .scripted import ScriptedInserter
@@ -54,8 +54,8 @@ def main(argv=None) -> int:
         ap.error("--num-worlds must be >= 1")
     if args.steps < 0:
         ap.error("--steps must be >= 0")
-    if args.geometry == "mesh" and args.task not in SDF_VOXEL:
-        ap.error(f"--geometry mesh exists for {sorted(SDF_VOXEL)}, not {args.task} (its primitives are exact)")
+    if geometry_error(args.task, args.geometry):
+        ap.error(f"--{geometry_error(args.task, args.geometry)}")
     if args.out.exists():
         ap.error(f"--out {args.out} exists; choose another path (files are never overwritten)")
     tiled = render_preview(args.task, args.num_worlds, args.steps, args.seed, args.device, args.geometry)

@@ -33,7 +33,7 @@ import newton
 from ..assets_usd import TASK_USD
 from ..assets_usd.author import SOCKET_NOMINAL_POS
 from ..kmp.pose import euler_xyz_from_quat
-from .scene import GEOMETRIES, SimConfig, add_part_meshes, apply_contact_settings, contact_limits, stage_root
+from .scene import GEOMETRIES, SimConfig, add_part_meshes, apply_contact_settings, make_solver_for, stage_root
 
 __all__ = ["PartsSim", "build_parts", "DriveResult", "run_drive"]
 
@@ -98,10 +98,7 @@ def run_drive(sim: PartsSim, start_pos, start_yaw, duration: float, force_z: flo
     nw = sim.num_worlds
     start_pos = np.broadcast_to(np.asarray(start_pos, dtype=np.float64), (nw, 3))
     start_yaw = np.broadcast_to(np.asarray(start_yaw, dtype=np.float64), (nw,))
-    nconmax, njmax = contact_limits(sim.task, cfg)
-    solver = newton.solvers.SolverMuJoCo(model, use_mujoco_contacts=False, solver="newton", integrator="implicitfast",
-                                         cone="elliptic", impratio=cfg.impratio, njmax=njmax, nconmax=nconmax)
-    pipeline = newton.CollisionPipeline(model, rigid_contact_max=nconmax * nw, broad_phase="explicit")
+    solver, pipeline = make_solver_for(model, sim.task, cfg, nw)  # the scene's solver and collision settings
     s0, s1, control = model.state(), model.state(), model.control()
     contacts = pipeline.contacts()
 

@@ -45,6 +45,15 @@ SDF_MARGIN = 0.005  # m, AABB padding of the SDFs (more than any contact gap her
 # 48 x 8 threads as well as 96 x 32 (2.01 vs 1.96 mm/turn) at about a ninth of the cost per frame.
 THREAD_MESH_GRID = {"sdf": (96, 32), "bvh": (48, 8)}
 
+
+def geometry_error(task: str, geometry: str) -> str | None:
+    """Why `geometry` does not exist for `task` (a message naming the allowed values), or None."""
+    if geometry not in GEOMETRIES:
+        return f"geometry must be one of {GEOMETRIES}, got {geometry!r}"
+    if geometry == "mesh" and task not in SDF_VOXEL:
+        return f"geometry 'mesh' exists for {sorted(SDF_VOXEL)}, not {task} (its primitives are exact)"
+    return None
+
 # Factory's reset posture (reference/isaaclab_factory_facts.md section 3); also the null-space target
 FACTORY_RESET_JOINTS = (1.5178e-3, -0.19651, -1.4364e-3, -1.9761, -2.7717e-4, 1.7796, 0.78556)
 # Factory's null-space posture (section 5.4)
@@ -256,17 +265,19 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
     from ..assets_usd import author
     from ..assets_usd import part_meshes as pm
 
-    if task not in SDF_VOXEL:
-        raise ValueError(f"SimConfig.geometry='mesh' exists for {sorted(SDF_VOXEL)}, not {task!r}; "
-                         "use 'primitives'")
+    error = geometry_error(task, "mesh")
+    if error is not None:
+        raise ValueError(f"SimConfig.{error}")
     root = f"/{stage_root(task)}/"
     labels = list(builder.shape_label)
     collide = int(newton.ShapeFlags.COLLIDE_SHAPES)
 
-    def off(*prefixes):  # neither collide nor render: the camera sees the meshes in their place
+    visible = int(newton.ShapeFlags.VISIBLE)
+
+    def clear(flags, *prefixes):
         for s, lbl in enumerate(labels):
             if any(lbl.startswith(root + p) for p in prefixes):
-                builder.shape_flags[s] &= ~(collide | int(newton.ShapeFlags.VISIBLE))
+                builder.shape_flags[s] &= ~flags
 
     def cfg(mu):
         return newton.ModelBuilder.ShapeConfig(density=0.0, mu=mu)  # mass stays the authored MassAPI's
@@ -276,11 +287,6 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
         if hit is None:
             raise ValueError(f"{task} stage has no shape {root + prefix}*; re-author it (assets_usd/author.py)")
         return builder.shape_color[hit]
-
-    def hide(*prefixes):  # still colliding, but drawn by the mesh that encloses them
-        for s, lbl in enumerate(labels):
-            if any(lbl.startswith(root + p) for p in prefixes):
-                builder.shape_flags[s] &= ~int(newton.ShapeFlags.VISIBLE)
 
     def mesh(vf):
         v, f = vf
@@ -295,8 +301,8 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
     z0, z1 = author.GEAR_BASE_HEIGHT, author.GEAR_BASE_HEIGHT + author.GEAR_HEIGHT
     added = []
     if task == "GearMesh":
-        off("medium_gear/tooth_", "gear_base/small_", "gear_base/large_")
-        hide("medium_gear/bore_")
+        clear(collide | visible, "medium_gear/tooth_", "gear_base/small_", "gear_base/large_")  # replaced
+        clear(visible, "medium_gear/bore_")  # still colliding, drawn by the mesh around it
         width = author.gear_tooth_width()
 
         def outline(name):
@@ -317,8 +323,8 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
                                                 cfg=cfg(author.PART_FRICTION), color=colour(f"gear_base/{name}_"),
                                                 label=root + f"gear_base/{name}_gear_mesh"))
     else:
-        off("nut/thread_", "bolt/thread_")
-        hide("nut/hex_")
+        clear(collide | visible, "nut/thread_", "bolt/thread_")
+        clear(visible, "nut/hex_")
         major = author.THREAD_BOLT_RADIUS + author.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
         tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT
         columns, rows = THREAD_MESH_GRID["sdf" if sdf_device is not None else "bvh"]
@@ -432,18 +438,21 @@ def build_scene(task: str, config: SimConfig | None = None) -> Scene:
 
 def make_solver(scene: Scene):
     """The configured solver and a collision pipeline producing its contacts."""
-    model = scene.model
-    nw = scene.num_worlds
-    nconmax, njmax = contact_limits(scene.task, scene.config)
-    pipeline = newton.CollisionPipeline(model, rigid_contact_max=nconmax * nw, broad_phase="explicit")
-    if scene.config.solver == "mujoco":
+    return make_solver_for(scene.model, scene.task, scene.config, scene.num_worlds)
+
+
+def make_solver_for(model: newton.Model, task: str, config: SimConfig, num_worlds: int):
+    """`make_solver` for any model of `task` (e.g. the parts alone, sim.parts)."""
+    nconmax, njmax = contact_limits(task, config)
+    pipeline = newton.CollisionPipeline(model, rigid_contact_max=nconmax * num_worlds, broad_phase="explicit")
+    if config.solver == "mujoco":
         solver = newton.solvers.SolverMuJoCo(
             model,
             use_mujoco_contacts=False,
             solver="newton",
             integrator="implicitfast",
             cone="elliptic",
-            impratio=scene.config.impratio,
+            impratio=config.impratio,
             njmax=njmax,
             nconmax=nconmax,
         )
