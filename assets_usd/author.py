@@ -2,15 +2,20 @@
 
 Writes, deterministically (same bytes on every run), next to this file:
 - franka_panda.usda  the Franka Emika Panda arm and hand, fixed base at the origin;
-- peg_insert.usda    the PegInsert parts: table, socket (fixed asset) and peg (held asset).
+- peg_insert.usda    the PegInsert parts: table, socket (fixed asset) and peg (held asset);
+- gear_mesh.usda     the GearMesh parts: table, gear base with its shaft and the small and large
+                     gears (fixed asset) and the medium gear (held asset);
+- nut_thread.usda    the NutThread parts: table, M16 bolt (fixed asset) and nut (held asset).
 
 `--check` regenerates into memory and fails if a file on disk differs (used by the tests, so
 the committed stages never drift from this script).
 
 Units: metres, kilograms, seconds; Z up. Quaternions in USD are (w, x, y, z); everything else
-in this project uses (x, y, z, w).
+in this project uses (x, y, z, w) (vkgrl_newton.rotations; `_xyzw` / `_wxyz` convert here).
 
-Where the numbers come from (shared/reference/franka_facts.md unless noted):
+Where the numbers come from. The parts' dimensions, masses, friction and the fixed asset's
+nominal pose are in dimensions.py (with their sources), shared with the simulator; the robot's
+are here:
 - Kinematics: Franka's modified-DH table (Franka interface specification) written as a body
   tree, each arm joint rotating about its body's local z. Joint limits and torque limits from
   the same specification.
@@ -19,29 +24,30 @@ Where the numbers come from (shared/reference/franka_facts.md unless noted):
   Optimization"), also used by the MuJoCo Menagerie model. Inertia tensors are about the COM in
   the body frame; USD wants principal moments + principal axes, computed here by eigh.
 - Joint armature: 0.3 (joints 1-4), 0.11 (joints 5-7), 0.15 (fingers), Isaac Lab's Newton port of
-  Factory (reference/isaaclab_factory_facts.md section 11).
+  Factory (`factory_newton_setup.py`).
 - Fingers: prismatic 0..0.04 m along +y of each finger frame, the right finger rotated 180 deg
   about z; mimic-coupled (right follows left). Position drive ke 2000 N/m, kd 20 N s/m
-  (reference/peg_grip_cpu_facts.md section 7: measured to hold the peg with a 20 N squeeze at
-  4 substeps). Finger pad boxes as in the Menagerie model.
+  (measured for this project on a CPU to hold the peg with a 20 N squeeze at 4 substeps per
+  1/120 s). Finger pad boxes as in the Menagerie model.
 - TCP: Isaac Lab Factory's `panda_fingertip_centered`, 0.112071 m along the hand's z
   (hand -> finger origin 0.0584 + finger origin -> bottom of the pads 0.053671, IsaacGymEnvs
   factory_asset_info_franka_table.yaml). Authored as a site (NewtonSiteAPI) named `tcp`.
 - Link collision capsules: a rough hull of each link (this script's own choice: segment from a
   link's origin to its child's, radius by link size). They are authored as colliders, as a robot
-  description should be; the simulator lets only the finger pads touch the task parts
-  (design.md: link shapes that never touch the parts change nothing and cost about 25 %).
-- PegInsert parts: Isaac Lab Factory's Peg8mm / Hole8mm (reference/isaaclab_factory_facts.md
-  section 2): peg diameter 7.986 mm, length 50 mm, 0.019 kg, origin at its bottom face; hole
-  diameter 8.1 mm, 25 mm deep, origin at its base (the hole bottom). The round hole is a ring of
-  16 boxes whose inner faces form a regular 16-gon with apothem 4.05 mm, a 0.75 mm 45-degree
-  chamfer ring at the entry, and a bottom plate (reference/peg_grip_cpu_facts.md: 160/162
-  scripted insertions succeeded with this geometry on CPU). Table: Isaac Lab's Newton port,
-  1.2 x 0.6 x 0.04 m centred at (0.55, 0, -0.02), top at z = 0.
-- Friction: 0.75 on the robot and the parts (Factory's `set_friction`), 0.6 on the socket
-  (peg_grip_cpu_facts.md section 7).
+  description should be; the simulator lets only the finger pads touch the task parts (measured:
+  link shapes that never touch the parts change nothing and cost about 25 % of a step).
+- Factory's reset posture is stored on the robot's root prim (customData
+  `vkgrl:factory_reset_joints`).
+The parts' collision geometry, from primitives:
+- PegInsert: the round hole is a ring of 16 boxes whose inner faces form a regular 16-gon with
+  apothem 4.05 mm, a 0.75 mm 45-degree chamfer ring at the entry, and a bottom plate (measured
+  for this project: 160 of 162 scripted insertions of a gripper-held peg succeeded with this
+  geometry on a CPU). The peg is a cylinder.
+- GearMesh: box teeth on cores for the small and large gears and on a 12-box bore ring for the
+  held medium gear, a capsule shaft and a grip hub on the held gear.
+- NutThread: capsule helices for the threads, a capsule core and a box head for the bolt, a
+  ring of six boxes for the hex nut.
 """
-
 from __future__ import annotations
 
 import argparse
@@ -53,6 +59,19 @@ from pathlib import Path
 import newton_usd_schemas  # noqa: F401  registers Newton's USD schemas (NewtonMimicAPI, NewtonSiteAPI) before pxr is used
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade, Vt
+
+# absolute imports: this file also runs as a script (python assets_usd/author.py)
+from vkgrl_newton.assets_usd.dimensions import (
+    BOLT_BASE_HEIGHT, BOLT_CORE_RADIUS, BOLT_FRICTION, BOLT_HEAD_HALF, BOLT_TIP_HEIGHT, FACTORY_RESET_JOINTS,
+    FIXED_ASSET_NOMINAL_POS, GEAR_BASE_HEIGHT, GEAR_BORE_APOTHEM, GEAR_BORE_SEGMENTS, GEAR_HEIGHT, GEAR_HUB_RADIUS,
+    GEAR_HUB_TOP, GEAR_MEDIUM_MASS, GEAR_MEDIUM_X, GEAR_MODULE, GEAR_SHAFT_RADIUS, GEAR_TEETH, HOLE_CHAMFER,
+    HOLE_DEPTH, HOLE_DIAMETER, HOLE_SEGMENTS, NUT_ACROSS_FLATS, NUT_BORE_APOTHEM, NUT_FRICTION, NUT_HEIGHT,
+    NUT_MASS, PART_FRICTION, PEG_DIAMETER, PEG_LENGTH, PEG_MASS, ROBOT_FRICTION, SOCKET_BOTTOM, SOCKET_FRICTION,
+    SOCKET_WALL, TABLE_HALF, TABLE_POS, THREAD_BOLT_RADIUS, THREAD_BOLT_TOP, THREAD_BOLT_TURNS,
+    THREAD_CAPSULE_RADIUS, THREAD_CHORDS_PER_TURN, THREAD_NUT_BOTTOM, THREAD_NUT_RADIUS, THREAD_NUT_TURNS,
+    THREAD_PITCH, gear_centres, gear_root_radius, gear_tooth_width,
+)
+from vkgrl_newton.rotations import quat_mul
 
 HERE = Path(__file__).resolve().parent
 FRANKA_FILE = "franka_panda.usda"
@@ -134,79 +153,6 @@ LINK_CAPSULES = {
 }
 HAND_BOX = ((0.025, 0.1, 0.03), (0.0, 0.0, 0.03))  # half sizes, centre in the hand frame
 
-# Reset/null-space posture of Isaac Lab Factory (reference/isaaclab_factory_facts.md sections 3, 5.4)
-FACTORY_RESET_JOINTS = (1.5178e-3, -0.19651, -1.4364e-3, -1.9761, -2.7717e-4, 1.7796, 0.78556)
-
-ROBOT_FRICTION = 0.75
-
-# ---------------------------------------------------------------------------------------------
-# PegInsert facts
-
-PEG_DIAMETER = 0.007986
-PEG_LENGTH = 0.050
-PEG_MASS = 0.019
-HOLE_DIAMETER = 0.0081
-HOLE_DEPTH = 0.025
-HOLE_SEGMENTS = 16
-HOLE_CHAMFER = 0.00075
-SOCKET_WALL = 0.006  # radial wall thickness
-SOCKET_BOTTOM = 0.005  # bottom plate thickness, below the hole bottom (socket origin)
-SOCKET_NOMINAL_POS = (0.6, 0.0, 0.05)  # Factory's default fixed-asset position
-TABLE_HALF = (0.6, 0.3, 0.02)
-TABLE_POS = (0.55, 0.0, -0.02)
-PART_FRICTION = 0.75
-SOCKET_FRICTION = 0.6
-
-# GearMesh parts (reference/isaaclab_factory_facts.md section 2; geometry of
-# reference/threads_gears_cpu_facts.md section 3, measured to block, slide and mesh on CPU).
-# Frame of the gear base ("assembled coordinates", as Factory): origin at the base plate's bottom
-# on the base's x axis, z up; the gears sit on the plate (z 5..25 mm); the medium shaft is at
-# x = +20.25 mm (Factory's offset). Module 2 mm, straight box teeth 0.5 mm slimmer per side than
-# half the circular pitch. Tooth counts 9 / 19 / 29 (tip diameters 22 / 42 / 62 mm: Factory's
-# small and medium gears measure 22 and 41.9 mm) put the small and large shafts 28 and 48 mm from
-# the medium one (Factory's meshes: 30.5 and 50.5 mm with their own tooth form).
-GEAR_MODULE = 0.002
-GEAR_TEETH = {"small": 9, "medium": 19, "large": 29}
-GEAR_BASE_HEIGHT = 0.005  # plate thickness = the gears' bottom
-GEAR_HEIGHT = 0.020  # tooth face width; the fixed tip (medium shaft top) is at 0.025
-GEAR_MEDIUM_X = 0.02025  # Factory's medium-shaft offset along the base x
-GEAR_TOOTH_CLEARANCE = 0.0005  # per flank
-GEAR_SHAFT_RADIUS = 0.005
-GEAR_BORE_APOTHEM = 0.0052  # 12-gon bore of the held gear: 0.2 mm radial play on the shaft
-GEAR_BORE_SEGMENTS = 12
-GEAR_HUB_RADIUS = 0.010  # grip hub on top of the held gear (z 25..45 mm): the fingers hold it
-GEAR_HUB_TOP = 0.045
-GEAR_MEDIUM_MASS = 0.012  # Factory
-# NutThread parts: an M16 x 2 bolt and nut (Factory: bolt base_height 0.01, height 0.025, nut
-# 24 mm across flats, 0.01 tall, 0.03 kg). Threads as helices of capsules (reference/
-# threads_gears_cpu_facts.md section 1: 2.00 mm per turn on MuJoCo-Warp): bolt centreline r 7.3 mm,
-# nut r 7.7 mm, capsule radius 0.45 mm, 24 chords per turn, right-hand. Only where the two can meet
-# is threaded: the bolt's top THREAD_BOLT_TURNS turns and the nut's bottom THREAD_NUT_TURNS turns
-# (the task ends 1.5 pitches below the bolt tip; the wrist turns less than a revolution).
-THREAD_PITCH = 0.002
-BOLT_HEAD_HALF = (0.012, 0.012, 0.005)  # head 24 x 24 x 10 mm below the shank, z 0..10 mm
-BOLT_BASE_HEIGHT = 0.010
-BOLT_SHANK_HEIGHT = 0.025  # tip at z = 0.035
-BOLT_CORE_RADIUS = 0.0070  # 0.25 mm inside the nut ridge: the play stays under the 0.5 mm ridge overlap
-THREAD_BOLT_RADIUS = 0.0073
-THREAD_NUT_RADIUS = 0.0077
-THREAD_CAPSULE_RADIUS = 0.00045
-THREAD_CHORDS_PER_TURN = 24
-THREAD_BOLT_TOP = 0.0335  # the bolt thread's upper end, 1.5 mm under the tip (a lead-in on the core)
-THREAD_BOLT_TURNS = 3
-THREAD_NUT_BOTTOM = 0.0005  # the nut thread's lower end above the nut's bottom face
-THREAD_NUT_TURNS = 2
-NUT_ACROSS_FLATS = 0.024
-NUT_BORE_APOTHEM = 0.0080  # hex bore flats, 0.25 mm outside the bolt ridge (r 7.75 mm)
-NUT_HEIGHT = 0.010
-NUT_MASS = 0.03
-# Friction: MuJoCo (and so Newton's SolverMuJoCo) takes the larger coefficient of a pair, PhysX
-# the mean. Factory sets the nut 0.01 and everything else 0.75; its own comment puts the effective
-# nut-bolt value at 0.25. Here the nut is 0.01 and the bolt 0.25: nut on bolt 0.25, nut in the
-# fingers 0.75 (the grip turns it), peg and gear parts as PegInsert.
-NUT_FRICTION = 0.01
-BOLT_FRICTION = 0.25
-
 COLORS = {
     "link": (0.92, 0.92, 0.92),
     "hand": (0.2, 0.2, 0.22),
@@ -226,7 +172,20 @@ COLORS = {
 # small maths (float64)
 
 
+def _xyzw(q_wxyz) -> tuple[float, float, float, float]:
+    """USD's (w, x, y, z) -> this project's (x, y, z, w)."""
+    w, x, y, z = q_wxyz
+    return (x, y, z, w)
+
+
+def _wxyz(q_xyzw) -> tuple[float, float, float, float]:
+    """(x, y, z, w), a sequence or tensor -> USD's (w, x, y, z) as floats."""
+    x, y, z, w = (float(v) for v in q_xyzw)
+    return (w, x, y, z)
+
+
 def quat_wxyz_to_matrix(q) -> np.ndarray:
+    """Rotation matrix (3, 3) of a unit quaternion (w, x, y, z) (the body tree composes matrices)."""
     w, x, y, z = q
     return np.array(
         [
@@ -502,22 +461,11 @@ def socket_pieces() -> list[tuple[str, BoxPiece]]:
         # +45 degrees about the local tangential (y) axis puts the box's x (thickness) along
         # (1, 0, -1)/sqrt2, behind the face, and its z along the face (1, 0, 1)/sqrt2
         tilt = (math.cos(math.pi / 8), 0.0, math.sin(math.pi / 8), 0.0)  # (w, x, y, z)
-        quat = _quat_mul_wxyz(yaw, tilt)
+        quat = _wxyz(quat_mul(_xyzw(yaw), _xyzw(tilt)))
         pieces.append((f"chamfer_{k:02d}", BoxPiece((h / 2, half_tan, c / math.sqrt(2)), (cr * cos_t, cr * sin_t, cz), quat)))
     outer = r + t
     pieces.append(("bottom", BoxPiece((outer, outer, SOCKET_BOTTOM / 2), (0.0, 0.0, -SOCKET_BOTTOM / 2), (1.0, 0.0, 0.0, 0.0))))
     return pieces
-
-
-def _quat_mul_wxyz(a, b):
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
 
 
 def author_peg_insert() -> Usd.Stage:
@@ -531,7 +479,7 @@ def author_peg_insert() -> Usd.Stage:
 
     # the fixed asset: static colliders under one frame; the simulator moves the frame per reset
     socket = UsdGeom.Xform.Define(stage, "/peg_insert/socket")
-    _set_pose(socket, SOCKET_NOMINAL_POS)
+    _set_pose(socket, FIXED_ASSET_NOMINAL_POS)
     socket.GetPrim().SetCustomDataByKey("vkgrl:role", "fixed_asset")
     for name, piece in socket_pieces():
         _box(stage, f"/peg_insert/socket/{name}", piece.half, piece.pos, piece.quat_wxyz,
@@ -539,7 +487,7 @@ def author_peg_insert() -> Usd.Stage:
 
     # the held asset: origin at the peg's bottom face, axis +z; placed above the socket
     peg = UsdGeom.Xform.Define(stage, "/peg_insert/peg")
-    _set_pose(peg, (SOCKET_NOMINAL_POS[0], SOCKET_NOMINAL_POS[1], SOCKET_NOMINAL_POS[2] + HOLE_DEPTH + 0.02))
+    _set_pose(peg, (FIXED_ASSET_NOMINAL_POS[0], FIXED_ASSET_NOMINAL_POS[1], FIXED_ASSET_NOMINAL_POS[2] + HOLE_DEPTH + 0.02))
     peg.GetPrim().SetCustomDataByKey("vkgrl:role", "held_asset")
     UsdPhysics.RigidBodyAPI.Apply(peg.GetPrim())
     radius = PEG_DIAMETER / 2
@@ -564,21 +512,6 @@ def _yaw_wxyz(angle: float) -> tuple[float, float, float, float]:
     return (math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2))
 
 
-def gear_tooth_width() -> float:
-    """Tangential width of a box tooth: half the circular pitch less the clearance per flank, m."""
-    return math.pi * GEAR_MODULE / 2 - 2 * GEAR_TOOTH_CLEARANCE
-
-
-def gear_centres() -> dict[str, tuple[float, float]]:
-    """Shaft positions (x, y) in the gear-base frame: the neighbours at the meshing centre distances."""
-    r_p = {name: GEAR_MODULE * z / 2 for name, z in GEAR_TEETH.items()}
-    return {
-        "medium": (GEAR_MEDIUM_X, 0.0),
-        "small": (GEAR_MEDIUM_X + r_p["medium"] + r_p["small"], 0.0),
-        "large": (GEAR_MEDIUM_X - r_p["medium"] - r_p["large"], 0.0),
-    }
-
-
 def gear_teeth(name: str, r_in: float, centre=(0.0, 0.0)) -> list[tuple[str, BoxPiece]]:
     """Box teeth of gear `name`, tooth k at angle 2 pi k / z from the frame's +x, radially r_in .. tip.
 
@@ -597,10 +530,6 @@ def gear_teeth(name: str, r_in: float, centre=(0.0, 0.0)) -> list[tuple[str, Box
         pieces.append((f"tooth_{k:02d}", BoxPiece(half, (centre[0] + rc * math.cos(a), centre[1] + rc * math.sin(a), zc),
                                                  _yaw_wxyz(a))))
     return pieces
-
-
-def gear_root_radius(name: str) -> float:
-    return GEAR_MODULE * GEAR_TEETH[name] / 2 - 1.25 * GEAR_MODULE
 
 
 def gear_bore_pieces() -> list[tuple[str, BoxPiece]]:
@@ -640,7 +569,7 @@ def author_gear_mesh() -> Usd.Stage:
     # flanking gears do not turn (Factory's are free bodies resting on their shafts): for
     # inserting the medium gear what matters is that their teeth block it unless it is aligned.
     base = UsdGeom.Xform.Define(stage, f"{root}/gear_base")
-    _set_pose(base, SOCKET_NOMINAL_POS)
+    _set_pose(base, FIXED_ASSET_NOMINAL_POS)
     base.GetPrim().SetCustomDataByKey("vkgrl:role", "fixed_asset")
     centres = gear_centres()
     x_lo = centres["large"][0] - GEAR_MODULE * (GEAR_TEETH["large"] / 2 + 1) - 0.004
@@ -665,7 +594,7 @@ def author_gear_mesh() -> Usd.Stage:
     # coincides with the target frame, base + (GEAR_MEDIUM_X, 0, 0), when seated), bore + spoke
     # teeth + a grip hub above the teeth
     gear = UsdGeom.Xform.Define(stage, f"{root}/medium_gear")
-    _set_pose(gear, (SOCKET_NOMINAL_POS[0] + GEAR_MEDIUM_X, SOCKET_NOMINAL_POS[1], SOCKET_NOMINAL_POS[2] + 0.03))
+    _set_pose(gear, (FIXED_ASSET_NOMINAL_POS[0] + GEAR_MEDIUM_X, FIXED_ASSET_NOMINAL_POS[1], FIXED_ASSET_NOMINAL_POS[2] + 0.03))
     gear.GetPrim().SetCustomDataByKey("vkgrl:role", "held_asset")
     UsdPhysics.RigidBodyAPI.Apply(gear.GetPrim())
     r_tip = GEAR_MODULE * (GEAR_TEETH["medium"] / 2 + 1)
@@ -726,11 +655,11 @@ def author_nut_thread() -> Usd.Stage:
 
     # the fixed asset: head, core (a capsule: its round top leads the nut on) and the thread
     bolt = UsdGeom.Xform.Define(stage, f"{root}/bolt")
-    _set_pose(bolt, SOCKET_NOMINAL_POS)
+    _set_pose(bolt, FIXED_ASSET_NOMINAL_POS)
     bolt.GetPrim().SetCustomDataByKey("vkgrl:role", "fixed_asset")
     _box(stage, f"{root}/bolt/head", BOLT_HEAD_HALF, (0.0, 0.0, BOLT_HEAD_HALF[2]), color=COLORS["bolt"],
          material=bolt_material)
-    tip = BOLT_BASE_HEIGHT + BOLT_SHANK_HEIGHT
+    tip = BOLT_TIP_HEIGHT
     _capsule(stage, f"{root}/bolt/core", (0.0, 0.0, BOLT_BASE_HEIGHT), (0.0, 0.0, tip - BOLT_CORE_RADIUS),
              BOLT_CORE_RADIUS, COLORS["bolt"], bolt_material)
     pts = bolt_thread_points()
@@ -740,10 +669,11 @@ def author_nut_thread() -> Usd.Stage:
 
     # the held asset: the nut, origin on its axis at its bottom face
     nut = UsdGeom.Xform.Define(stage, f"{root}/nut")
-    _set_pose(nut, (SOCKET_NOMINAL_POS[0], SOCKET_NOMINAL_POS[1], SOCKET_NOMINAL_POS[2] + tip + 0.015))
+    _set_pose(nut, (FIXED_ASSET_NOMINAL_POS[0], FIXED_ASSET_NOMINAL_POS[1], FIXED_ASSET_NOMINAL_POS[2] + tip + 0.015))
     nut.GetPrim().SetCustomDataByKey("vkgrl:role", "held_asset")
     UsdPhysics.RigidBodyAPI.Apply(nut.GetPrim())
-    # inertia of a hex ring ~ a thick cylinder r 8.3 .. 13 mm (reference facts: diag(2, 2, 3.3)e-6)
+    # inertia of a hex ring ~ a thick cylinder r 8.3 .. 13 mm: diag(2, 2, 3.3)e-6 kg m^2, the value the
+    # capsule threads were measured to turn with on a CPU
     _mass(nut.GetPrim(), NUT_MASS, (0.0, 0.0, NUT_HEIGHT / 2), (2.0e-6, 2.0e-6, 3.3e-6, 0.0, 0.0, 0.0))
     for name, piece in nut_hex_pieces():
         _box(stage, f"{root}/nut/{name}", piece.half, piece.pos, piece.quat_wxyz, color=COLORS["nut"],
@@ -757,8 +687,6 @@ def author_nut_thread() -> Usd.Stage:
 
 GEAR_MESH_FILE = "gear_mesh.usda"
 NUT_THREAD_FILE = "nut_thread.usda"
-# the prim (under the stage's root) holding each task's fixed asset; its shapes are static
-FIXED_ASSET_PRIM = {"PegInsert": "socket", "GearMesh": "gear_base", "NutThread": "bolt"}
 STAGES = {FRANKA_FILE: author_franka, PEG_INSERT_FILE: author_peg_insert, GEAR_MESH_FILE: author_gear_mesh,
           NUT_THREAD_FILE: author_nut_thread}
 

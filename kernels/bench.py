@@ -40,6 +40,7 @@ import warp as wp
 
 wp.config.quiet = True
 
+from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS
 from .kmp_horizon import kmp_horizon_pose, mat66f, vec6f
 from .osc import osc_torques, osc_torques_torch
 
@@ -93,8 +94,6 @@ def setup_kmp_horizon(batch: int, device: str):
     return warp_fn, torch_fn
 
 
-FACTORY_Q_NULL = (-1.3003, -0.4015, 1.1791, -2.1493, 0.4001, 1.9425, 0.4754)  # Factory null-space posture
-FACTORY_RESET_Q = (1.5178e-3, -0.19651, -1.4364e-3, -1.9761, -2.7717e-4, 1.7796, 0.78556)
 FACTORY_KP = (565.0, 565.0, 565.0, 28.0, 28.0, 28.0)  # FORGE nominal task stiffness
 
 
@@ -127,7 +126,7 @@ def setup_osc(batch: int, device: str):
         kp=kp,
         kd=2.0 * kp.sqrt(),
         dead_zone=torch.full((batch, 6), 0.5),
-        q_null=torch.tensor(FACTORY_Q_NULL),
+        q_null=torch.tensor(FACTORY_NULL_JOINTS),
         torque_limit=torch.full((7,), 100.0),
     )
     t = {k: v.to(tdev).contiguous() for k, v in t.items()}
@@ -156,8 +155,9 @@ def setup_osc(batch: int, device: str):
 
 def franka_builder(tcp_offset: float = 0.1034):
     """One Franka Panda (link0 fixed to the world, 7 revolute arm joints about local z, a fixed hand,
-    two prismatic fingers) from the body tree and Gaz et al. inertias of franka_facts.md, with a site
-    "tool_site" tcp_offset along the hand's z. 11 links, 9 DoF; arm joints labelled joint1..joint7."""
+    two prismatic fingers) from Franka's modified-DH body tree and the Gaz et al. (RA-L 2019) inertias,
+    with a site "tool_site" tcp_offset along the hand's z. 11 links, 9 DoF; arm joints labelled
+    joint1..joint7."""
     import newton
 
     def quat(w, x, y, z):  # the table's wxyz -> warp's xyzw
@@ -212,7 +212,7 @@ def franka_model(world_count: int, device: str, seed: int = 0):
     scene.replicate(franka_builder(), world_count)
     model = scene.finalize(device=device)
     rng = torch.Generator().manual_seed(seed)
-    q = torch.tensor(FACTORY_RESET_Q + (0.04, 0.04)).repeat(world_count, 1)
+    q = torch.tensor(FACTORY_RESET_JOINTS + (0.04, 0.04)).repeat(world_count, 1)
     q[:, :7] += 0.1 * torch.randn(world_count, 7, generator=rng)
     qd = 0.2 * torch.randn(world_count, 9, generator=rng)
     state = model.state()
@@ -248,7 +248,7 @@ def setup_osc_newton_pipeline(batch: int, device: str):
         target_quat_w=wp.array(np.tile([1.0, 0.0, 0.0, 0.0], (batch, 1)), dtype=wp.quat, device=device),
         kp=wp.array(kp, dtype=vec6f, device=device), kd=wp.array(2 * np.sqrt(kp), dtype=vec6f, device=device),
         dead_zone=wp.zeros(batch, dtype=vec6f, device=device),
-        q_null=wp.array(np.array(FACTORY_Q_NULL, np.float32), device=device), kp_null=10.0, kd_null=6.3246,
+        q_null=wp.array(np.array(FACTORY_NULL_JOINTS, np.float32), device=device), kp_null=10.0, kd_null=6.3246,
         torque_limit=wp.array(np.full(7, 100.0, np.float32), device=device),
         tcp_pos_w=wp.zeros(batch, dtype=wp.vec3, device=device), tcp_quat_w=wp.zeros(batch, dtype=wp.quat, device=device),
         tcp_twist_w=wp.zeros(batch, dtype=wp.spatial_vector, device=device),
@@ -282,7 +282,7 @@ def setup_osc_newton_controller(batch: int, device: str):
     hand = state.body_q.numpy()[np.arange(batch) * 11 + 8]
     pose = np.concatenate([hand[:, :3] + np.array([0.0, 0.0, -0.11]), np.tile([1.0, 0.0, 0.0, 0.0], (batch, 1))], axis=1)
     inp.desired_tool_pose_operational.assign(pose.astype(np.float32))
-    inp.joint_q_des_null.assign(np.tile(np.array(FACTORY_Q_NULL, np.float32), batch))
+    inp.joint_q_des_null.assign(np.tile(np.array(FACTORY_NULL_JOINTS, np.float32), batch))
 
     def warp_fn():
         osc.step(inputs=inp, outputs=out, dt=1.0 / 120.0)

@@ -321,39 +321,8 @@ def osc_torques(
 
 
 # ---------------------------------------------------------------------------------------------------
-# torch: the same computation, batched (benchmark baseline and a second implementation to test)
-
-
-def _quat_rotate_torch(q, v):
-    """Rotate v (..., 3) by unit quaternions q (..., 4) xyzw."""
-    import torch
-
-    qv, qw = q[..., :3], q[..., 3:]
-    t = 2.0 * torch.linalg.cross(qv, v, dim=-1)
-    return v + qw * t + torch.linalg.cross(qv, t, dim=-1)
-
-
-def _quat_mul_torch(a, b):
-    """Hamilton product a b of quaternions (..., 4) xyzw."""
-    import torch
-
-    av, aw = a[..., :3], a[..., 3:]
-    bv, bw = b[..., :3], b[..., 3:]
-    vec = aw * bv + bw * av + torch.linalg.cross(av, bv, dim=-1)
-    return torch.cat([vec, aw * bw - (av * bv).sum(-1, keepdim=True)], dim=-1)
-
-
-def _quat_to_rotvec_torch(q):
-    """Rotation vector of unit quaternions (..., 4) xyzw, angle in [0, pi] (as the kernel's quat_to_rotvec)."""
-    import torch
-
-    q = torch.where(q[..., 3:] < 0.0, -q, q)
-    v, w = q[..., :3], q[..., 3:]
-    s = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-    small = s < 1.0e-3
-    series = (2.0 / w) * (1.0 - s * s / (3.0 * w * w))
-    exact = 2.0 * torch.atan2(s, w) / torch.where(small, torch.ones_like(s), s)
-    return v * torch.where(small, series, exact)
+# torch: the same computation, batched (benchmark baseline and a second implementation to test),
+# on the package's torch quaternion maths (vkgrl_newton.rotations)
 
 
 def osc_torques_torch(
@@ -389,6 +358,9 @@ def osc_torques_torch(
     tau (E, 7)); when joint_f (E, Dw) is given, tau is also written to its arm columns."""
     import torch
 
+    # torch only here, in the twin: the Warp kernel above needs neither torch nor these
+    from ..rotations import quat_conjugate, quat_log, quat_mul, quat_rotate
+
     a = robot_articulation.long()
     hb = hand_body.long()
     cols = slice(arm_dof_start, arm_dof_start + 7)
@@ -396,8 +368,8 @@ def osc_torques_torch(
     x_hand = body_q[hb]
     p_hand, q_tcp = x_hand[:, :3], x_hand[:, 3:]
     offset = torch.as_tensor(tcp_offset_hand, dtype=body_q.dtype, device=body_q.device).expand_as(p_hand)
-    p_tcp = p_hand + _quat_rotate_torch(q_tcp, offset)
-    r = p_tcp - (p_hand + _quat_rotate_torch(q_tcp, body_com[hb]))
+    p_tcp = p_hand + quat_rotate(q_tcp, offset)
+    r = p_tcp - (p_hand + quat_rotate(q_tcp, body_com[hb]))
     twist = body_qd[hb]
     w = twist[:, 3:]
     v_tcp = twist[:, :3] + torch.linalg.cross(w, r, dim=-1)
@@ -407,8 +379,7 @@ def osc_torques_torch(
 
     e_p = target_pos_w - p_tcp
     q_des = torch.where((target_quat_w * q_tcp).sum(-1, keepdim=True) < 0.0, -target_quat_w, target_quat_w)
-    q_inv = torch.cat([-q_tcp[:, :3], q_tcp[:, 3:]], dim=-1)
-    e_r = _quat_to_rotvec_torch(_quat_mul_torch(q_des, q_inv))
+    e_r = quat_log(quat_mul(q_des, quat_conjugate(q_tcp)))  # the kernel's quat_to_rotvec, angle in [0, pi]
     vel = torch.cat([v_tcp, w], dim=-1)
     wrench = kp * torch.cat([e_p, e_r], dim=-1) - kd * vel
     wrench = torch.where(wrench.abs() < dead_zone, torch.zeros_like(wrench), wrench - torch.sign(wrench) * dead_zone)

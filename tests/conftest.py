@@ -23,8 +23,9 @@ def wp_cpu():
     """Warp, initialized once per session, quiet, with the CPU device as default."""
     import warp as wp
 
-    wp.config.quiet = True
-    wp.init()
+    from vkgrl_newton.runtime import configure_warp
+
+    configure_warp(verbose=False)
     wp.set_device("cpu")
     return wp
 

@@ -1,16 +1,18 @@
 """The authored USD stages (assets_usd/author.py) against the published Franka facts and brute force.
 
-References, all independent of author.py's own tables: the modified-DH table, inertial table and limits
-of shared/reference/franka_facts.md (transcribed below), a float64 modified-DH forward kinematics written
-here (Craig convention), and a brute-force point-in-box test of the socket's collision boxes.
+References, all independent of author.py's own tables: the modified-DH table and limits of Franka's
+interface specification and the inertial table of Gaz et al. (RA-L 2019) (transcribed below), a float64
+modified-DH forward kinematics written here (Craig convention), scipy's Rotation for quaternions, and a
+brute-force point-in-box test of the socket's collision boxes.
 """
 
 import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-# ------------------------------------------------------------------ published facts (franka_facts.md)
+# ------------------------------------------------------------------ published facts (Franka, Gaz et al.)
 
 # Craig / modified DH, one row per joint: (a_{i-1}, d_i, alpha_{i-1}), then the flange
 DH = [
@@ -78,10 +80,8 @@ def tensor6(i6):
 
 
 def quat_xyzw_to_matrix(q):
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    """Rotation matrix of a (not necessarily normalized) xyzw quaternion, by scipy."""
+    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
 
 
 def rot_x(a):
@@ -438,7 +438,9 @@ def _ring(radius, z, n_angles=720):
 
 
 def test_socket_hole_clear_for_peg_and_tight_beyond(author, peg_builder):
-    boxes = _socket_boxes(peg_builder, author.SOCKET_NOMINAL_POS)
+    from vkgrl_newton.assets_usd.dimensions import FIXED_ASSET_NOMINAL_POS
+
+    boxes = _socket_boxes(peg_builder, FIXED_ASSET_NOMINAL_POS)
 
     # the peg's surface, over the hole depth (below the chamfer foot at 24.25 mm and into it)
     for z in np.linspace(0.0005, 0.0245, 25):

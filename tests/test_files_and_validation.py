@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from vkgrl_newton.kmp import DemoSet, KMPTables, fit_prior, load_or_fit_prior, synthetic_demos
-from vkgrl_newton.kmp.pose import quat_exp, quat_log, unwrap_rotation_vectors
+from vkgrl_newton.kmp.pose import unwrap_rotation_vectors
+from vkgrl_newton.rotations import quat_exp, quat_log
 from vkgrl_newton.kmp.tables import tables_path_for
 
 

@@ -1,14 +1,15 @@
 """The Warp task-space impedance (OSC) kernel and its torch twin against a float64 numpy reference.
 
 The reference is written here from the formulas (Isaac Lab Factory `compute_dof_torque`, TCP shifted from
-the hand COM), independently of the kernel's helpers: quaternion algebra, rotation vector, wrapping and
-the null-space projector are spelled out with numpy and literal matrix inverses.
+the hand COM), independently of the kernel's helpers: quaternion algebra and rotation vectors by scipy's
+Rotation, wrapping and the null-space projector spelled out with numpy and literal matrix inverses.
 """
 
 import numpy as np
-from quat_ref import q_axis_angle, q_mul, q_to_matrix, random_quats
+from quat_ref import random_quats
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 TASK_REG = 1.0e-6  # relative diagonal regularization of J M^-1 J^T, as documented in kernels/osc.py
 HAND_LINK = 8  # Newton Franka: link0, link1..7, hand, two fingers -> 11 links, 9 DoF
@@ -32,7 +33,7 @@ def reference(inp, kp_null, kd_null, reg=TASK_REG):
     for e in range(len(d["robot_articulation"])):
         a, hb = int(d["robot_articulation"][e]), int(d["hand_body"][e])
         p_hand, q_hand = d["body_q"][hb, :3], d["body_q"][hb, 3:]
-        R = q_to_matrix(q_hand)
+        R = Rotation.from_quat(q_hand).as_matrix()
         p_tcp = p_hand + R @ d["tcp_offset_hand"]
         r = p_tcp - (p_hand + R @ d["body_com"][hb])
         v_com, w = d["body_qd"][hb, :3], d["body_qd"][hb, 3:]
@@ -43,8 +44,9 @@ def reference(inp, kp_null, kd_null, reg=TASK_REG):
         q_star = d["target_quat_w"][e]
         if q_star @ q_hand < 0:
             q_star = -q_star
-        q_inv = np.array([-q_hand[0], -q_hand[1], -q_hand[2], q_hand[3]]) / (q_hand @ q_hand)
-        err = np.concatenate([d["target_pos_w"][e] - p_tcp, q_axis_angle(q_mul(q_star, q_inv))])
+        # e_r = axis * angle of q* q^-1, angle in [0, pi] (scipy's rotation vector is the shortest one)
+        e_r = (Rotation.from_quat(q_star) * Rotation.from_quat(q_hand).inv()).as_rotvec()
+        err = np.concatenate([d["target_pos_w"][e] - p_tcp, e_r])
         F = d["kp"][e] * err - d["kd"][e] * np.concatenate([v_tcp, w])
         dz = d["dead_zone"][e]
         F = np.where(np.abs(F) < dz, 0.0, F - np.sign(F) * dz)
@@ -322,7 +324,7 @@ def test_small_rotation_errors_are_smooth(wp_cpu):
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     dq = np.concatenate([axes * np.sin(angles / 2)[:, None], np.cos(angles / 2)[:, None]], axis=1)
     q_hand = case["body_q"][case["hand_body"], 3:].astype(np.float64)
-    case["target_quat_w"] = np.array([q_mul(dq[e], q_hand[e]) for e in range(num_envs)], np.float32)
+    case["target_quat_w"] = (Rotation.from_quat(dq) * Rotation.from_quat(q_hand)).as_quat().astype(np.float32)
     case["kp"][:, :3] = 0.0  # rotation only
     case["kd"][:] = 0.0
     got = run_kernel(wp_cpu, case, 0.0, 0.0)
@@ -373,7 +375,7 @@ def franka(wp_cpu):
 
 
 def run_on_franka(wp, franka, kp, kd, kp_null, kd_null, tcp=0.1034, seed=0):
-    from vkgrl_newton.kernels.bench import FACTORY_Q_NULL
+    from vkgrl_newton.assets_usd.dimensions import FACTORY_NULL_JOINTS
     from vkgrl_newton.kernels.kmp_horizon import vec6f
     from vkgrl_newton.kernels.osc import osc_torques
 
@@ -396,7 +398,7 @@ def run_on_franka(wp, franka, kp, kd, kp_null, kd_null, tcp=0.1034, seed=0):
         arm_q_start=0, arm_qd_start=0, target_pos_w=wp.array(target_pos, dtype=wp.vec3),
         target_quat_w=wp.array(target_quat, dtype=wp.quat), kp=wp.array(np.tile(kp, (e, 1)), dtype=vec6f),
         kd=wp.array(np.tile(kd, (e, 1)), dtype=vec6f), dead_zone=wp.zeros(e, dtype=vec6f),
-        q_null=wp.array(np.array(FACTORY_Q_NULL, np.float32)), kp_null=kp_null, kd_null=kd_null,
+        q_null=wp.array(np.array(FACTORY_NULL_JOINTS, np.float32)), kp_null=kp_null, kd_null=kd_null,
         torque_limit=wp.array(np.full(7, 1e9, np.float32)), joint_f=control.joint_f.reshape((e, N_DOFS)), **out)
     res = {k: v.numpy() for k, v in out.items()}
     res["tau"] = control.joint_f.numpy().reshape(e, N_DOFS)
@@ -407,7 +409,7 @@ def run_on_franka(wp, franka, kp, kd, kp_null, kd_null, tcp=0.1034, seed=0):
 def newton_controller(wp, franka, target, **kwargs):
     from newton.controllers import ControllerOperationalSpace
 
-    from vkgrl_newton.kernels.bench import FACTORY_Q_NULL
+    from vkgrl_newton.assets_usd.dimensions import FACTORY_NULL_JOINTS
 
     model, state, _, _ = franka
     osc = ControllerOperationalSpace(model, joints=[f"joint{i}" for i in range(1, 8)], tool_sites="tool_site",
@@ -418,7 +420,7 @@ def newton_controller(wp, franka, target, **kwargs):
     inp.joint_q, inp.joint_qd = state.joint_q, state.joint_qd
     inp.desired_tool_pose_operational.assign(target)
     if inp.joint_q_des_null is not None:
-        inp.joint_q_des_null.assign(np.tile(np.array(FACTORY_Q_NULL, np.float32), model.articulation_count))
+        inp.joint_q_des_null.assign(np.tile(np.array(FACTORY_NULL_JOINTS, np.float32), model.articulation_count))
     osc.step(inputs=inp, outputs=out, dt=0.01)
     return osc, control.joint_f.numpy().reshape(model.articulation_count, N_DOFS)
 

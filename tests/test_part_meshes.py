@@ -9,6 +9,7 @@ import pytest
 import trimesh
 
 from vkgrl_newton.assets_usd import author
+from vkgrl_newton.assets_usd import dimensions as dims
 from vkgrl_newton.assets_usd import part_meshes as pm
 
 P = 0.002  # M16 x 2
@@ -34,22 +35,22 @@ def _circle(r, n=48):
 
 
 def test_gear_meshes_closed_with_the_outline_area():
-    outline = pm.gear_outline(19, author.gear_root_radius("medium"), 0.021, author.gear_tooth_width())
+    outline = pm.gear_outline(19, dims.gear_root_radius("medium"), 0.021, dims.gear_tooth_width())
     assert _shoelace(outline) > 0  # counter-clockwise
-    bore = _circle(author.GEAR_BORE_APOTHEM)
+    bore = _circle(dims.GEAR_BORE_APOTHEM)
     solid = _check_closed(*pm.extrude(outline, None, 0.005, 0.025))
     holed = _check_closed(*pm.extrude(outline, bore, 0.005, 0.025))
     assert solid.volume == pytest.approx(_shoelace(outline) * 0.020, rel=1e-9)
     assert holed.volume == pytest.approx((_shoelace(outline) - _shoelace(bore)) * 0.020, rel=1e-9)
     # the outline's teeth are author.gear_teeth's boxes: every tip vertex is a box corner
     corners = []
-    for _, piece in author.gear_teeth("medium", author.gear_root_radius("medium")):
+    for _, piece in author.gear_teeth("medium", dims.gear_root_radius("medium")):
         a = 2 * math.atan2(piece.quat_wxyz[3], piece.quat_wxyz[0])
         c, s = math.cos(a), math.sin(a)
         for sy in (-1, 1):
             x, y = piece.half[0], sy * piece.half[1]
             corners.append((piece.pos[0] + c * x - s * y, piece.pos[1] + s * x + c * y))
-    tips = outline[np.isclose(np.hypot(outline[:, 0], outline[:, 1]), math.hypot(0.021, author.gear_tooth_width() / 2))]
+    tips = outline[np.isclose(np.hypot(outline[:, 0], outline[:, 1]), math.hypot(0.021, dims.gear_tooth_width() / 2))]
     assert len(tips) == 38
     d = np.min(np.linalg.norm(tips[:, None, :] - np.array(corners)[None], axis=-1), axis=1)
     assert d.max() < 1e-12

@@ -1,9 +1,9 @@
 """GearMesh and NutThread parts: what the stages hold, checked against the published facts and
 brute-force geometry, and what the contact geometry does in the solver (vkgrl_newton.sim.parts).
 
-References: reference/isaaclab_factory_facts.md section 2 (masses, M16 x 2, 24 mm across flats,
-the medium shaft's offset), a plan-view polygon test of the gear teeth written here, and the
-helix written out in float64 from the pitch.
+References: Isaac Lab Factory's factory_tasks_cfg.py (masses 0.012 / 0.03 kg, M16 x 2, 24 mm across
+flats; the medium shaft's offset, dimensions.GEAR_MEDIUM_X), a plan-view polygon test of the gear teeth
+written here, and the helix written out in float64 from the pitch.
 """
 
 import math
@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from vkgrl_newton.assets_usd import author
+from vkgrl_newton.assets_usd import dimensions as dims
 
 M16_PITCH = 0.002
-MEDIUM_SHAFT_X = 0.02025
+MEDIUM_SHAFT_X = dims.GEAR_MEDIUM_X  # Factory's medium-shaft offset along the gear base's x
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +79,7 @@ def test_gear_stage_parts(gear_model):
     # the medium shaft sits at Factory's offset in the base frame
     tf = m.shape_transform.numpy()
     shaft = labels.index("/gear_mesh/gear_base/shaft")
-    assert tf[shaft][0] - author.SOCKET_NOMINAL_POS[0] == pytest.approx(MEDIUM_SHAFT_X, abs=1e-6)  # float32
+    assert tf[shaft][0] - dims.FIXED_ASSET_NOMINAL_POS[0] == pytest.approx(MEDIUM_SHAFT_X, abs=1e-6)  # float32
 
 
 def test_nut_stage_parts(nut_model):
@@ -87,7 +88,7 @@ def test_nut_stage_parts(nut_model):
     assert m.body_mass.numpy()[nut_model.held_body] == pytest.approx(0.03, rel=1e-6)  # Factory's M16 nut
     nut_thread = [i for i, lbl in enumerate(labels) if lbl.startswith("/nut_thread/nut/thread_")]
     bolt_thread = [i for i, lbl in enumerate(labels) if lbl.startswith("/nut_thread/bolt/thread_")]
-    assert len(nut_thread) == author.THREAD_NUT_TURNS * 24 and len(bolt_thread) == author.THREAD_BOLT_TURNS * 24
+    assert len(nut_thread) == dims.THREAD_NUT_TURNS * 24 and len(bolt_thread) == dims.THREAD_BOLT_TURNS * 24
     # the hex: six flats 24 mm across (outer faces at 12 mm from the axis)
     hexes = [i for i, lbl in enumerate(labels) if lbl.startswith("/nut_thread/nut/hex_")]
     tf, scale = m.shape_transform.numpy(), m.shape_scale.numpy()
@@ -104,12 +105,12 @@ def test_bolt_thread_is_an_m16x2_right_hand_helix(nut_model):
     labels = list(m.shape_label)
     tf = m.shape_transform.numpy()
     idx = [i for i, lbl in enumerate(labels) if lbl.startswith("/nut_thread/bolt/thread_")]
-    c = np.array([tf[i][:3] for i in idx], dtype=np.float64) - np.array(author.SOCKET_NOMINAL_POS)
+    c = np.array([tf[i][:3] for i in idx], dtype=np.float64) - np.array(dims.FIXED_ASSET_NOMINAL_POS)
     theta = np.unwrap(np.arctan2(c[:, 1], c[:, 0]))
     slope = np.polyfit(theta / (2 * math.pi), c[:, 2], 1)[0]
     assert slope == pytest.approx(M16_PITCH, rel=1e-4)
     r = np.hypot(c[:, 0], c[:, 1])
-    np.testing.assert_allclose(r, author.THREAD_BOLT_RADIUS * math.cos(math.pi / 24), rtol=1e-5)
+    np.testing.assert_allclose(r, dims.THREAD_BOLT_RADIUS * math.cos(math.pi / 24), rtol=1e-5)
 
 
 def _tooth_polygons(pieces, yaw=0.0, centre=(0.0, 0.0)):
@@ -142,19 +143,19 @@ def _separated(a, b) -> bool:
 def test_gear_teeth_mesh_only_when_aligned():
     """Plan view, brute force over all tooth pairs: at yaw 0 the medium gear's teeth clear both
     neighbours' teeth and cores; turned by half a tooth pitch some tooth overlaps a neighbour's."""
-    centres = author.gear_centres()
+    centres = dims.gear_centres()
     neighbours = []
     for name in ("small", "large"):
-        neighbours += _tooth_polygons(author.gear_teeth(name, author.gear_root_radius(name) - 0.0005, centres[name]))
+        neighbours += _tooth_polygons(author.gear_teeth(name, dims.gear_root_radius(name) - 0.0005, centres[name]))
     pitch = 2 * math.pi / 19
 
     def clashes(yaw):
-        medium = _tooth_polygons(author.gear_teeth("medium", author.GEAR_BORE_APOTHEM + 0.0018), yaw,
+        medium = _tooth_polygons(author.gear_teeth("medium", dims.GEAR_BORE_APOTHEM + 0.0018), yaw,
                                  centres["medium"])
         n = sum(not _separated(a, b) for a in medium for b in neighbours)
         # cores: the tooth corners must stay outside the neighbours' root circles
         for name in ("small", "large"):
-            r_core = author.gear_root_radius(name)
+            r_core = dims.gear_root_radius(name)
             for poly in medium:
                 n += int(np.any(np.hypot(*(poly - np.array(centres[name])).T) < r_core))
         return n
@@ -218,7 +219,7 @@ def test_gear_slides_when_aligned_and_is_blocked_when_not(request, geometry):
     r = run_drive(model, (MEDIUM_SHAFT_X, 0.0, 0.03), [0.0, pitch / 2], 0.4, force_z=-1.0)
     z_aligned, z_blocked = r.pos[-1, 0, 2], r.pos[-1, 1, 2]
     assert abs(z_aligned) < 0.0005  # seated: origin at the base frame's level
-    assert z_blocked == pytest.approx(author.GEAR_HEIGHT, abs=0.0005)
+    assert z_blocked == pytest.approx(dims.GEAR_HEIGHT, abs=0.0005)
     assert np.hypot(r.pos[-1, 0, 0] - MEDIUM_SHAFT_X, r.pos[-1, 0, 1]) < 0.0005
 
 
@@ -301,6 +302,6 @@ def test_mesh_variant_builds_an_sdf_per_mesh_on_cuda(wp_cpu, task, monkeypatch):
         assert kw["narrow_band_range"] == scene.SDF_BAND and kw["margin"] == scene.SDF_MARGIN
     if task == "NutThread":  # the threads on the SDF grid: columns x rows over the shank, + 2 cap centres
         columns, rows_per_pitch = scene.THREAD_MESH_GRID["sdf"]
-        tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT  # as scene.add_part_meshes and threaded_rod
-        rows = int(math.ceil((tip - author.BOLT_BASE_HEIGHT) / author.THREAD_PITCH * rows_per_pitch)) + 1
+        tip = dims.BOLT_BASE_HEIGHT + dims.BOLT_SHANK_HEIGHT  # as scene.add_part_meshes and threaded_rod
+        rows = int(math.ceil((tip - dims.BOLT_BASE_HEIGHT) / dims.THREAD_PITCH * rows_per_pitch)) + 1
         assert calls[0][0] == columns * rows + 2

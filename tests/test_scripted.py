@@ -1,22 +1,30 @@
 """The demonstrator's controller inversion against the OSC force law, in float64 (no simulation).
 
-The env's OSC (kernels/osc.py, Factory/Forge facts section 5.4) applies per world-frame wrench
-component F = dz(Kp . [e_p; e_r] - Kd . [v; w]) with e_p = cmd - x, e_r the axis-angle of
-cmd_q * q^-1, and Forge's dead zone dz(f) = f - d sign(f) for |f| > d, else 0. The demonstrator
-chooses the command so that this equals its own wrench F* = K (ref - x) - D v (rotation alike).
+The env's OSC (kernels/osc.py; Isaac Lab's `compute_dof_torque` in factory_control.py, with FORGE's
+wrench dead zone) applies per world-frame wrench component
+F = dz(Kp . [e_p; e_r] - Kd . [v; w]) with e_p = cmd - x, e_r the axis-angle of cmd_q * q^-1, and
+Forge's dead zone dz(f) = f - d sign(f) for |f| > d, else 0. The demonstrator chooses the command
+so that this equals its own wrench F* = K (ref - x) - D v (rotation alike). Quaternion references
+by scipy's Rotation.
 """
 
 import types
 
 import numpy as np
 import torch
-from quat_ref import q_axis_angle, q_conj, q_mul, q_to_matrix, random_quats
+from quat_ref import random_quats
+from scipy.spatial.transform import Rotation
 
 from vkgrl_newton.envs.scripted import ALIGN, INSERT, ScriptedInserter, ScriptedParams
 
 
 def _dead_zone(f, d):
     return np.where(np.abs(f) > d, f - np.sign(f) * d, 0.0)
+
+
+def _rotvec_between(q_to, q_from):
+    """Axis * angle (angle in [0, pi]) of q_to * q_from^-1, xyzw, float64."""
+    return (Rotation.from_quat(q_to) * Rotation.from_quat(q_from).inv()).as_rotvec()
 
 
 def test_invert_controller_applies_the_demonstrators_wrench():
@@ -31,7 +39,7 @@ def test_invert_controller_applies_the_demonstrators_wrench():
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     angles = rng.uniform(0, 0.3, (n, 1))
     dq = np.hstack((np.sin(angles / 2) * axes, np.cos(angles / 2)))
-    ref_q = np.array([q_mul(a, b) for a, b in zip(dq, q)])
+    ref_q = (Rotation.from_quat(dq) * Rotation.from_quat(q)).as_quat()
     kp = rng.uniform(0.7, 1.41, (n, 6)) * np.array([565.0, 565, 565, 28, 28, 28])
     kd = 2.0 * np.sqrt(kp)
     dead = rng.uniform(0, 1, (n, 1)) * np.array([5.0, 5, 5, 1, 1, 1])
@@ -55,14 +63,16 @@ def test_invert_controller_applies_the_demonstrators_wrench():
         k_xy = params.inside_lateral_stiffness if inside[e] else params.stiffness
         k = np.array([k_xy, k_xy, k_z])
         f_star = k * (ref[e] - x[e]) - params.damping * twist[e, :3]
-        t_star = params.rot_stiffness * q_axis_angle(q_mul(ref_q[e], q_conj(q[e]))) - params.rot_damping * twist[e, 3:]
+        t_star = params.rot_stiffness * _rotvec_between(ref_q[e], q[e]) - params.rot_damping * twist[e, 3:]
         # what the env's OSC applies for this command
-        e_r = q_axis_angle(q_mul(cmd_q[e], q_conj(q[e])))
+        e_r = _rotvec_between(cmd_q[e], q[e])
         pre = kp[e] * np.r_[cmd_p[e] - x[e], e_r] - kd[e] * twist[e]
         applied = _dead_zone(pre, dead[e])
         np.testing.assert_allclose(applied, np.r_[f_star, t_star], atol=1e-7, err_msg=f"world {e}")
     # sanity: the check can fail (a command at the reference does not apply F* under a dead zone)
-    pre_naive = kp[-1] * np.r_[ref[-1] - x[-1], q_axis_angle(q_mul(ref_q[-1], q_conj(q[-1])))] - kd[-1] * twist[-1]
+    pre_naive = kp[-1] * np.r_[ref[-1] - x[-1], _rotvec_between(ref_q[-1], q[-1])] - kd[-1] * twist[-1]
     f_star = params.stiffness * (ref[-1] - x[-1]) - params.damping * twist[-1, :3]
     assert not np.allclose(_dead_zone(pre_naive, dead[-1])[:3], f_star, atol=1e-3)
-    assert np.allclose(q_to_matrix(cmd_q[0]) @ q_to_matrix(cmd_q[0]).T, np.eye(3), atol=1e-9)
+    r0 = Rotation.from_quat(cmd_q[0]).as_matrix()
+    assert np.allclose(r0 @ r0.T, np.eye(3), atol=1e-9)
+    assert np.allclose(np.linalg.norm(cmd_q, axis=1), 1.0, atol=1e-9)  # unit command quaternions

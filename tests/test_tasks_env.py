@@ -1,7 +1,9 @@
 """GearMesh and NutThread in the full env: the grasp, the success test and one scripted episode each
-on two CPU worlds (Factory, 4D). References: Factory's success test (isaaclab facts 8.2: gear
-centred within 2.5 mm and seated within 1 mm; nut within 0.375 pitch of 1.5 pitches under the
-bolt tip, and the TCP yaw below 0), the M16 pitch (2 mm per turn), and the authored geometry.
+on two CPU worlds (Factory, 4D). References: Factory's success test (Isaac Lab factory_env.py
+`_get_curr_successes` with factory_tasks_cfg.py's thresholds: gear centred within 2.5 mm and seated
+within 1 mm; nut within 0.375 pitch of 1.5 pitches under the bolt tip, and the TCP yaw below 0), the
+M16 pitch (2 mm per turn), and the authored geometry (assets_usd/dimensions.py). TASK_GEOMETRY's
+part-derived fields against the dimensions, by hand-written formulas.
 """
 
 import math
@@ -16,7 +18,7 @@ M16_PITCH = 0.002
 def _episode(task, seed):
     from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
     from vkgrl_newton.envs.scripted import ScriptedInserter
-    from vkgrl_newton.kmp.pose import euler_xyz_from_quat, quat_conjugate, quat_rotate
+    from vkgrl_newton.rotations import euler_xyz_from_quat, quat_conjugate, quat_rotate
 
     env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=4, num_envs=2, device="cpu", seed=seed))
     policy = ScriptedInserter(seed=seed)
@@ -47,8 +49,8 @@ def nut_episode(wp_cpu):
 
 
 def test_gear_grasp_and_target_frames(gear_episode):
-    from vkgrl_newton.kmp.pose import quat_rotate
-    from vkgrl_newton.kmp.pose import quat_from_euler_xyz
+    from vkgrl_newton.assets_usd.dimensions import GEAR_MEDIUM_X
+    from vkgrl_newton.rotations import quat_from_euler_xyz, quat_rotate
 
     env, grasp, _ = gear_episode
     # the held gear hangs 29 mm (+-3 mm in-hand noise) under the TCP, on the gripper axis
@@ -57,7 +59,7 @@ def test_gear_grasp_and_target_frames(gear_episode):
     # target base: the medium shaft, 20.25 mm along the base's yawed x; tip 25 mm above it
     yaw = env.fixed_yaw
     q = quat_from_euler_xyz(torch.zeros_like(yaw), torch.zeros_like(yaw), yaw)
-    shaft = env.fixed_pos_w + quat_rotate(q, torch.tensor([[0.02025, 0.0, 0.0]]).expand(2, 3))
+    shaft = env.fixed_pos_w + quat_rotate(q, torch.tensor([[GEAR_MEDIUM_X, 0.0, 0.0]]).expand(2, 3))
     torch.testing.assert_close(env.target_base_w, shaft, atol=1e-6, rtol=0)
     torch.testing.assert_close(env.fixed_tip_w - env.target_base_w, torch.tensor([[0.0, 0.0, 0.025]] * 2),
                                atol=1e-6, rtol=0)
@@ -101,7 +103,7 @@ def test_nut_scripted_episode_threads(nut_episode):
 def test_nut_yaw_action_turns_clockwise_only(nut_episode):
     """Factory's unidirectional_rot: a_yaw maps to -(a_yaw + 1) / 2 in [-1, 0] (x 0.097 rad): -1
     holds the yaw, a zero action turns clockwise at half speed, +1 at full speed."""
-    from vkgrl_newton.kmp.pose import euler_xyz_from_quat
+    from vkgrl_newton.rotations import euler_xyz_from_quat
 
     env = nut_episode[0]
     env.reset()
@@ -115,3 +117,33 @@ def test_nut_yaw_action_turns_clockwise_only(nut_episode):
     dy = (euler_xyz_from_quat(env.tcp_pose()[1])[2] - y0).numpy()
     assert dy[0] < -math.radians(3.0)  # +1: clockwise
     assert abs(dy[1]) < math.radians(1.0)  # -1: no turn
+
+
+def test_task_geometry_follows_the_part_dimensions():
+    """The env's part-derived numbers, recomputed here from the dimensions (float64, exact equality:
+    the same operations on the same constants)."""
+    from vkgrl_newton.assets_usd import dimensions as d
+    from vkgrl_newton.envs.assembly_env import FIXED_ASSET_NOMINAL, TASK_GEOMETRY
+
+    assert FIXED_ASSET_NOMINAL == d.FIXED_ASSET_NOMINAL_POS == (0.6, 0.0, 0.05)  # Factory's fixed-asset position
+    peg, gear, nut = TASK_GEOMETRY["PegInsert"], TASK_GEOMETRY["GearMesh"], TASK_GEOMETRY["NutThread"]
+    # fixed tips: the hole's top, the medium shaft's top (plate + face width), the bolt tip
+    assert peg.fixed_height == d.HOLE_DEPTH == 0.025
+    assert gear.fixed_height == d.GEAR_BASE_HEIGHT + d.GEAR_HEIGHT == 0.025
+    assert nut.fixed_height == d.BOLT_BASE_HEIGHT + d.BOLT_SHANK_HEIGHT == 0.035
+    # Factory's success thresholds: a fraction of the fixed part's height, the nut's of the pitch
+    assert peg.success_z == 0.04 * d.HOLE_DEPTH
+    assert gear.success_z == 0.05 * d.GEAR_HEIGHT
+    assert nut.success_z == 0.375 * d.THREAD_PITCH
+    # target bases: the medium shaft; 1.5 pitches under the bolt tip
+    assert gear.target_offset == (d.GEAR_MEDIUM_X, 0.0, 0.0)
+    assert nut.target_offset == (0.0, 0.0, (d.BOLT_BASE_HEIGHT + d.BOLT_SHANK_HEIGHT) - 1.5 * d.THREAD_PITCH)
+    assert nut.target_offset[2] == pytest.approx(0.032, abs=1e-15)
+    assert gear.held_bottom == d.GEAR_BASE_HEIGHT  # the gear's teeth start on the plate
+    # grip: the pads close on the peg's surface, the gear's hub and the nut's flats (pad offset 0.883 mm,
+    # then 10 mm further in for the 20 N squeeze); the fingers open to 1.25 x the nut's half width
+    pad = 0.000883
+    assert peg.finger_grip_target == d.PEG_DIAMETER / 2 - pad - 0.010
+    assert gear.finger_grip_target == d.GEAR_HUB_RADIUS - pad - 0.010
+    assert nut.finger_grip_target == d.NUT_ACROSS_FLATS / 2 - pad - 0.010
+    assert nut.finger_open == d.NUT_ACROSS_FLATS / 2 * 1.25

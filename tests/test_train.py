@@ -19,7 +19,7 @@ import torch
 
 from quat_ref import q_to_matrix
 from vkgrl_newton.kmp.demos import synthetic_demos
-from vkgrl_newton.kmp.pose import quat_from_euler_xyz
+from vkgrl_newton.rotations import quat_from_euler_xyz
 from vkgrl_newton.kmp.prior import fit_prior
 from vkgrl_newton.tasks import get_task
 
@@ -198,14 +198,50 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     assert code == 0
     metrics = json.loads((run_dir / "metrics.json").read_text())
     for key in ("success_rate", "success_rate_any", "mean_contact_force", "peak_contact_force",
-                "time_to_first_success_s", "mean_episode_reward", "env_steps_per_s", "physics_resets"):
+                "time_to_first_success_s", "mean_episode_reward", "env_steps_per_s", "physics_resets", "ik_failures"):
         assert key in metrics
+    assert metrics["training"]["ik_failures"] == 0 and metrics["ik_failures"] == 0
+    # the run records exactly the prior it learned with
+    from vkgrl_newton.cache import file_sha256
+    from vkgrl_newton.kmp.prior import KMP_BETA, KMP_L, KMP_LAMBDA
+
+    assert metrics["prior"] == {"demos": str(peg_demos_file), "demos_sha256": file_sha256(peg_demos_file),
+                                "lam": KMP_LAMBDA, "beta": KMP_BETA, "l": KMP_L, "num_demos": 8}
     assert metrics["episodes"] == 2 and metrics["method"] == "kgrl"
     sac = json.loads((run_dir / "config.json").read_text())["sac"]  # KGRL's own exploration defaults
     assert (sac["warmup"], sac["actor_init_std"], sac["log_std_max"], sac["batch_size"]) == ("policy", 0.1, -1.2, 8)
     assert 0.0 <= metrics["success_rate"] <= 1.0 and metrics["mean_contact_force"] >= 0.0
     # the KMP tables were fitted beside the demonstrations and are reused
     assert peg_demos_file.with_name(peg_demos_file.stem + ".kmp4d.npz").exists()
+
+
+def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cpu, tmp_path, capsys):
+    """The run's meta records the demonstrations by sha256; a file changed under that name stops
+    --resume and evaluate.py --checkpoint with both hashes named; evaluate's --demos overrides."""
+    from vkgrl_newton.agents.checkpoint import load_checkpoint
+    from vkgrl_newton.cache import file_sha256
+
+    demos = tmp_path / "demos.npz"
+    synthetic_demos("PegInsert", 6, action_dim=6, seed=3).save(demos)
+    recorded = file_sha256(demos)
+    run_dir = tmp_path / "kgrl"
+    assert run_py.main(["--method", "kgrl", "--run-dir", str(run_dir), "--demos", str(demos), "--total-steps", "8",
+                        "--eval-episodes", "0", *TINY]) == 0
+    ckpt = run_dir / "checkpoints" / "last.pt"
+    prior = load_checkpoint(ckpt)["meta"]["prior"]
+    assert prior["demos"] == str(demos) and prior["demos_sha256"] == recorded and prior["num_demos"] == 6
+
+    demos.unlink()
+    synthetic_demos("PegInsert", 6, action_dim=6, seed=4).save(demos)  # other demonstrations, same name
+    now = file_sha256(demos)
+    evaluate_py = load_script("evaluate")
+    for call in (lambda: run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress"]),
+                 lambda: evaluate_py.main(["--checkpoint", str(ckpt), "--device", "cpu", "--num-envs", "2"])):
+        with pytest.raises(SystemExit) as exc:
+            call()
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert recorded in err and now in err, err
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -229,7 +265,8 @@ def test_run_bad_flags_are_argparse_errors(run_py, argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_run_vision_kgrl_with_a_given_vae_and_evaluate_its_checkpoint(run_py, wp_cpu, tmp_path, peg_demos_file):
+def test_run_vision_kgrl_with_a_given_vae_and_evaluate_its_checkpoint(run_py, wp_cpu, tmp_path, peg_demos_file,
+                                                                       capsys):
     from vkgrl_newton.vision import DenoisingVAE, VAEConfig, save_vae
 
     cfg = VAEConfig(resolution=32, channels=(8, 8, 8, 8, 8))
@@ -239,7 +276,10 @@ def test_run_vision_kgrl_with_a_given_vae_and_evaluate_its_checkpoint(run_py, wp
                         "--demos", str(peg_demos_file), "--total-steps", "16", "--eval-episodes", "1", *TINY])
     assert code == 0
     config = json.loads((run_dir / "config.json").read_text())
-    assert config["obs_dim"] == 8 + 16 and config["vision"] == {"vae": str(vae_file), "latent_dim": 16}  # eq. 5.6
+    from vkgrl_newton.cache import file_sha256
+
+    assert config["obs_dim"] == 8 + 16 and config["vision"] == {"vae": str(vae_file), "latent_dim": 16,  # eq. 5.6
+                                                                "vae_sha256": file_sha256(vae_file)}
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["episodes"] == 2 and metrics["method"] == "vision_kgrl"
     evaluate_py = load_script("evaluate")
@@ -249,6 +289,20 @@ def test_run_vision_kgrl_with_a_given_vae_and_evaluate_its_checkpoint(run_py, wp
                              "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["policy"] == "vision_kgrl" and result["geometry"] == "primitives"  # the run's (not stored)
+
+    # another VAE under the same name: evaluating or resuming the run is refused, naming both hashes
+    recorded = file_sha256(vae_file)
+    other = VAEConfig(resolution=32, channels=(8, 8, 8, 8, 16))
+    vae_file.unlink()
+    save_vae(vae_file, DenoisingVAE(other), other, meta={"task": "PegInsert"})
+    for call in (lambda: evaluate_py.main(["--checkpoint", str(run_dir / "checkpoints" / "last.pt"), "--device", "cpu",
+                                           "--demos", str(peg_demos_file)]),
+                 lambda: run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "32", "--no-progress"])):
+        with pytest.raises(SystemExit) as exc:
+            call()
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert recorded in err and file_sha256(vae_file) in err, err
 
 
 def test_run_vae_of_another_task_is_an_argparse_error(run_py, tmp_path, capsys):
@@ -369,9 +423,9 @@ def test_run_geometry_is_part_of_a_mesh_runs_identity(run_py, tmp_path):
     p = demos_path_for(tmp_path, "GearMesh", 16, 0)
     bvh = demos_path_for(tmp_path, "GearMesh", 16, 0, "mesh", device="cpu")
     sdf = demos_path_for(tmp_path, "GearMesh", 16, 0, "mesh", device="cuda:0")
-    assert p.name == "demos_scripted_factory_n16_seed0.npz"
-    assert (bvh.name, sdf.name) == ("demos_scripted_factory_n16_seed0_mesh_bvh.npz",
-                                    "demos_scripted_factory_n16_seed0_mesh_sdf.npz")
+    assert p.name == "demos_scripted_v1_factory_n16_seed0.npz"  # v: the demonstrator's version
+    assert (bvh.name, sdf.name) == ("demos_scripted_v1_factory_n16_seed0_mesh_bvh.npz",
+                                    "demos_scripted_v1_factory_n16_seed0_mesh_sdf.npz")
 
 
 def test_run_resume_with_another_geometry_is_refused(run_py, tmp_path, capsys):

@@ -176,7 +176,7 @@ def test_resume_a_checkpoint_written_before_the_new_options(image_dir, tmp_path)
     was: GroupNorm on, KL weight 1; asking it for no GroupNorm is refused, naming the field."""
     import shutil
 
-    from vkgrl_newton.agents.checkpoint import load_checkpoint, save_checkpoint
+    from vkgrl_newton._io import load_checkpoint, save_checkpoint
 
     out = tmp_path / "old"
     train_vae(image_dir, out, epochs=1, **TRAIN)

@@ -464,9 +464,9 @@ def test_presets_and_their_cache_names(tmp_path):
     thesis, quick = VISION_PRESETS["thesis"], VISION_PRESETS["quick"]
     assert (thesis.resolution, thesis.num_images, thesis.vae_epochs, thesis.vae_batch_size) == (256, 130_000, 400, 128)
     assert thesis.kl_weight == 1.0 and thesis.group_norm and thesis.vae_config().group_norm
-    assert default_vae_dir(tmp_path, "PegInsert", thesis) == tmp_path / "PegInsert" / "vae_r256_n130000_e400_seed0"
+    assert default_vae_dir(tmp_path, "PegInsert", thesis) == tmp_path / "PegInsert" / "vae_v1_r256_n130000_e400_seed0"
     assert default_vae_dir(tmp_path, "GearMesh", quick) == (
-        tmp_path / "GearMesh" / f"vae_r64_n4096_e{quick.vae_epochs}_b32_kl0.01_nonorm_seed0")
+        tmp_path / "GearMesh" / f"vae_v1_r64_n4096_e{quick.vae_epochs}_b32_kl0.01_nonorm_seed0")
     assert quick.vae_config() == VAEConfig(resolution=64, group_norm=False)
     names = {default_vae_dir(tmp_path, "PegInsert", VisionPreset(64, 4096, 10, **kw)).name
              for kw in ({}, {"vae_batch_size": 32}, {"kl_weight": 0.5}, {"group_norm": False}, {"seed": 1})}

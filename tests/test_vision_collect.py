@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from quat_ref import q_to_matrix
+from scipy.spatial.transform import Rotation
 
 
 def test_relative_target_state_matches_float64(peg_env):
@@ -20,7 +20,7 @@ def test_relative_target_state_matches_float64(peg_env):
     hand = env._state_views(env.state_0)["body_q"][env.hand_idx].double().numpy()
     fixed = env.fixed_pos_w.double().numpy()
     for i in range(env.num_envs):
-        rot = q_to_matrix(hand[i, 3:])
+        rot = Rotation.from_quat(hand[i, 3:]).as_matrix()
         tcp = hand[i, :3] + rot @ env.tcp_offset.double().numpy().reshape(3)
         tip = fixed[i] + np.array([0.0, 0.0, env.geometry.fixed_height])
         np.testing.assert_allclose(got[i, :3], rot.T @ (tip - tcp), atol=2e-6)

@@ -23,6 +23,7 @@ from vkgrl_newton.cli_types import positive_int  # noqa: E402
 
 from vkgrl_newton.envs.assembly_env import FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
 from vkgrl_newton.envs.demonstrations import record_demonstrations  # noqa: E402
+from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
 
@@ -36,7 +37,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True, help="output .npz (never overwritten)")
-    args = ap.parse_args(argv)
+    args = parse_cli(ap, argv, device=True)
     if args.num_demos < 2:
         ap.error("--num-demos must be >= 2 (a distribution needs several demonstrations)")
     if args.out.exists():

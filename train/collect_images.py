@@ -17,13 +17,12 @@ import argparse
 import sys
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton.cli_types import positive_int  # noqa: E402
 
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES  # noqa: E402
+from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 from vkgrl_newton.vision.collect import CollectConfig, collect_images  # noqa: E402
 
@@ -46,10 +45,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=d.seed)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--no-progress", action="store_true")
-    args = ap.parse_args(argv)
+    args = parse_cli(ap, argv, device=True)
     if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
         ap.error(f"--out {args.out} exists and is not an empty directory; image sets are never overwritten")
-    device = args.device or ("cuda:0" if torch.cuda.is_available() else "cpu")
+    device = args.device
     try:
         cfg = CollectConfig(task=args.task, num_images=args.num_images, resolution=args.resolution,
                             num_envs=args.num_envs, family=args.env, action_dim=args.action_dim,

@@ -33,6 +33,7 @@ from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,  # noqa: E402
                                             ZeroPolicy, evaluate, write_video)
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
+from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.sim.scene import GEOMETRIES, SOLVERS, SimConfig, geometry_error  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
@@ -59,7 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--demos", type=Path, default=None, help="kmp_prior: your own demonstrations")
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
     ap.add_argument("--video", type=Path, default=None, help="GIF of the task camera (first 4 worlds, tiled)")
-    args = ap.parse_args(argv)
+    args = parse_cli(ap, argv, device=True)
     for name in ("json", "video"):
         out = getattr(args, name)
         if out is not None and out.exists():
@@ -79,6 +80,14 @@ def main(argv=None) -> int:
         args.policy = meta["method"]
         if args.geometry is None:
             args.geometry = meta.get("geometry", "primitives")
+        if "prior" in meta and args.demos is None:  # the prior the run learned with (--demos overrides)
+            from vkgrl_newton.cache import check_unchanged
+
+            try:
+                check_unchanged(meta["prior"]["demos"], meta["prior"]["demos_sha256"], "the KMP prior's demonstrations")
+            except (FileNotFoundError, ValueError) as e:
+                ap.error(f"--checkpoint: {e} (--demos FILE evaluates with another prior)")
+            args.demos = Path(meta["prior"]["demos"])
     if args.geometry is None:
         args.geometry = "primitives"
 
@@ -88,6 +97,10 @@ def main(argv=None) -> int:
         from vkgrl_newton.vision.vae import FrozenEncoder, load_vae
 
         try:
+            if "vae_sha256" in vision:
+                from vkgrl_newton.cache import check_unchanged
+
+                check_unchanged(vision["vae"], vision["vae_sha256"], "the VAE")
             vae, _ = load_vae(vision["vae"], expect={"task": args.task})
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--checkpoint: the run's VAE: {e}")
@@ -106,8 +119,9 @@ def main(argv=None) -> int:
     if args.policy in ("kmp_prior", "kgrl", "vision_kgrl"):
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
+        prior = payload["meta"].get("prior", {}) if payload is not None else {}
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device,
-                                       geometry=args.geometry)
+                                       geometry=args.geometry, **{k: prior[k] for k in ("lam", "beta", "l") if k in prior})
         action_path = KGRLActionPath(tables, env)
     if payload is not None:
         from vkgrl_newton.agents.sac import SAC, SACConfig

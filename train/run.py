@@ -10,7 +10,7 @@ encoder of the hand camera's image to the policy observation (eq. 5.6; vkgrl_new
 Everything a method needs is produced on first use and cached under `--cache-dir` (KGRL: scripted
 demonstrations recorded in the simulator, and the KMP tables fitted to them; vision: the task
 camera image set and the VAE trained on it, vkgrl_newton/vision/pipeline.py, per task and preset:
-64 px / 4,096 images / 20 epochs for `quick`, 256 px / 130,000 / 400 for `thesis`; `--vae`
+64 px / 4,096 images / 10 epochs for `quick`, 256 px / 130,000 / 400 for `thesis`; `--vae`
 uses your own). A run directory holds:
 
     config.json          the arguments and the SAC configuration
@@ -51,6 +51,7 @@ from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_che
 from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
 from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
+from vkgrl_newton.runtime import add_verbose_flag, configure_warp, default_device  # noqa: E402
 from vkgrl_newton.sim.scene import GEOMETRIES, SimConfig, geometry_error  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
@@ -104,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
                     help="demonstrations, KMP tables, image sets, VAEs")
     ap.add_argument("--no-progress", action="store_true")
+    add_verbose_flag(ap)
     return ap
 
 
@@ -132,10 +134,6 @@ def parse_sac_overrides(items: list[str]) -> dict:
         except ValueError:
             raise ValueError(f"--sac {item!r}: {text!r} is not a valid {type(current).__name__} for {name}") from None
     return out
-
-
-def _default_device() -> str:
-    return "cuda:0" if torch.cuda.is_available() else "cpu"
 
 
 def unavailable(args) -> str | None:
@@ -190,6 +188,7 @@ def _explicit_args(argv) -> set[str]:
 def main(argv=None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
+    configure_warp(args.verbose)
     args.sac_config, payload = None, None
     if args.resume:  # the run's identity comes from its checkpoint (a damaged one stops here)
         if args.run_dir is None:
@@ -208,6 +207,12 @@ def main(argv=None) -> int:
             args.geometry = meta.get("geometry", "primitives")
         if "vae" not in given and "vision" in meta:
             args.vae = Path(meta["vision"]["vae"])
+        if "demos" not in given and "prior" in meta:
+            args.demos = Path(meta["prior"]["demos"])
+        try:  # a run continues from exactly what it learned from
+            _check_recorded_files(meta, args)
+        except (FileNotFoundError, ValueError) as e:
+            ap.error(f"--resume: {e}")
         for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every
             if name not in given:
                 setattr(args, name, value)
@@ -230,7 +235,7 @@ def main(argv=None) -> int:
         args.sac_overrides = parse_sac_overrides(args.sac)
     except ValueError as e:
         ap.error(str(e))
-    args.device = args.device or _default_device()
+    args.device = args.device or default_device()
     args.preset = args.preset or ("thesis" if args.device.startswith("cuda") else "quick")
     if args.sac_config is None:
         try:
@@ -260,7 +265,7 @@ def main(argv=None) -> int:
     args.obs_dim = observation_dim(args.env, args.latent_dim) - (1 if args.no_time_obs else 0)
     if payload is not None:  # a foreign checkpoint stops here, before anything is built
         try:
-            saved = dict(payload["meta"])
+            saved = _without_file_records(payload["meta"])  # checked above, by content
             # a checkpoint from before a SACConfig field existed holds that field's default
             saved["sac"] = dataclasses.asdict(SACConfig(**saved["sac"]))
             now = run_meta(args, args.obs_dim, args.sac_config)
@@ -273,6 +278,27 @@ def main(argv=None) -> int:
 
 
 
+def _check_recorded_files(meta: dict, args) -> None:
+    """The files a run recorded by sha256 (its KMP prior's demonstrations, its VAE) are the ones
+    these arguments name, unchanged; ValueError naming both hashes otherwise."""
+    from vkgrl_newton.cache import check_unchanged
+
+    if "prior" in meta and args.demos is not None:
+        check_unchanged(args.demos, meta["prior"]["demos_sha256"], "the KMP prior's demonstrations")
+    vision = meta.get("vision", {})
+    if "vae_sha256" in vision and args.vae is not None:
+        check_unchanged(args.vae, vision["vae_sha256"], "the VAE")
+
+
+def _without_file_records(meta: dict) -> dict:
+    """A run's meta less its file records (prior, VAE hash): compared by content, not as fields."""
+    meta = dict(meta)
+    meta.pop("prior", None)
+    if "vision" in meta:
+        meta["vision"] = {k: v for k, v in meta["vision"].items() if k != "vae_sha256"}
+    return meta
+
+
 def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     from torch.utils.tensorboard import SummaryWriter
 
@@ -280,6 +306,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
 
     torch.manual_seed(args.seed)
     log = tqdm.write
+    log(f"train/run.py: {args.method} {args.task} {args.env} {args.action_dim}D on device {args.device} -> {run_dir}")
 
     encoder = None
     if uses_vision(args.method):
@@ -308,8 +335,12 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     if uses_kmp(args.method):
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
-        tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos,
-                                       num_demos=args.num_demos, device=args.device, geometry=args.geometry, log=log)
+        kw = {}
+        if payload is not None and "prior" in payload["meta"]:  # the KMP parameters it was fitted with
+            kw = {k: payload["meta"]["prior"][k] for k in ("lam", "beta", "l")}
+        tables, demos_path = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos,
+                                                num_demos=args.num_demos, device=args.device, geometry=args.geometry,
+                                                log=log, **kw)
         action_path = KGRLActionPath(tables, env)
     step_fn = action_path.step if action_path is not None else env.step
     time_obs = not args.no_time_obs
@@ -317,6 +348,19 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     sac_cfg = args.sac_config
     agent = SAC(obs_dim, args.action_dim, sac_cfg, device=env.tdev, seed=args.seed)
     meta = run_meta(args, obs_dim, sac_cfg)
+    if action_path is not None:  # exactly what the run learns from: the prior's file and parameters
+        from vkgrl_newton.agents.kgrl import prior_record
+
+        meta["prior"] = prior_record(action_path.tables, demos_path)
+    if encoder is not None:
+        from vkgrl_newton.cache import file_sha256
+
+        meta["vision"]["vae_sha256"] = file_sha256(meta["vision"]["vae"])
+    if payload is not None:
+        for key in ("prior", "vision"):
+            if key in payload["meta"] and payload["meta"][key] != meta.get(key):
+                raise SystemExit(f"train/run.py: --resume: the run's {key} was {payload['meta'][key]}, "
+                                 f"now {meta.get(key)}")
     counters = {"transitions": 0, "env_steps": 0, "episodes": 0, "wall_s": 0.0}
     if payload is not None:
         agent.load_state_dict(payload["agent"])
@@ -390,6 +434,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                 if update_time > 0:
                     writer.add_scalar("perf/grad_steps_per_s", (agent.num_updates - grad0) / update_time, step)
                 writer.add_scalar("perf/physics_resets", env.physics_resets_total, step)
+                writer.add_scalar("perf/ik_failures", env.ik_failures_total, step)
                 status.update(success=ep["success_rate"], reward=ep["episode_reward"], force=ep["mean_contact_force"])
             bar.update(env.num_envs)
             if status:
@@ -417,7 +462,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                / max(time.perf_counter() - t_session, 1e-9),
                "train_env_steps_per_s": (counters["env_steps"] - env_steps0) * env.num_envs / max(env_time, 1e-9),
                "grad_steps_per_s": (agent.num_updates - grad0) / update_time if update_time > 0 else float("nan"),
-               "physics_resets": env.physics_resets_total}
+               "physics_resets": env.physics_resets_total, "ik_failures": env.ik_failures_total}
     metrics: dict = {}
     if args.eval_episodes:
         metrics = evaluate(env, AgentPolicy(agent, action_path, time_obs), args.eval_episodes,
@@ -436,14 +481,12 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
 
 
 def _rng_state(env) -> dict:
-    return {"torch": torch.get_rng_state(), "env_torch": env.generator.get_state(),
-            "env_numpy": json.dumps(env.np_rng.bit_generator.state)}
+    return {"torch": torch.get_rng_state(), "env_torch": env.generator.get_state()}
 
 
 def _restore_rng(state: dict, env) -> None:
     torch.set_rng_state(state["torch"])
-    env.generator.set_state(state["env_torch"])
-    env.np_rng.bit_generator.state = json.loads(state["env_numpy"])
+    env.generator.set_state(state["env_torch"])  # (older checkpoints also hold an unused "env_numpy")
 
 
 if __name__ == "__main__":

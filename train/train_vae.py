@@ -32,6 +32,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton.cli_types import nonnegative_int, positive_float, positive_int  # noqa: E402
+from vkgrl_newton.runtime import default_device, parse_cli  # noqa: E402
 
 from vkgrl_newton.vision.dataset import ImageSet  # noqa: E402
 from vkgrl_newton.vision.train import CHECKPOINT, train_vae  # noqa: E402
@@ -79,7 +80,7 @@ def _channels(text: str) -> tuple[int, ...]:
 
 def _device(ap: argparse.ArgumentParser, text: str | None) -> str:
     if text is None:
-        return "cuda:0" if torch.cuda.is_available() else "cpu"
+        return default_device()
     try:
         device = torch.device(text)
     except RuntimeError:
@@ -93,7 +94,7 @@ def _device(ap: argparse.ArgumentParser, text: str | None) -> str:
 
 def main(argv=None) -> int:
     ap = build_parser()
-    args = ap.parse_args(argv)
+    args = parse_cli(ap, argv)
     try:
         images = ImageSet(args.images)
     except (FileNotFoundError, ValueError) as e:

@@ -1,16 +1,30 @@
-"""File helpers shared by everything that writes user-visible data."""
+"""File helpers shared by everything that writes user-visible data.
+
+Checkpoints (`save_checkpoint` / `load_checkpoint`): one `torch.save` file holding a dict of
+tensors, numbers, strings, lists and dicts (so that `torch.load(weights_only=True)` reads it),
+with "format" = CHECKPOINT_FORMAT added; each kind of checkpoint (a training run's,
+vkgrl_newton.agents.checkpoint; a VAE's, vkgrl_newton.vision.vae) names the top-level keys it
+must hold. Written with `atomic_write`: a crash at any moment leaves either the old checkpoint or
+the new one, never a torn file.
+"""
 
 from __future__ import annotations
 
 import os
+import pickle
 import tempfile
 import zipfile
 import zlib
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import torch
 
-__all__ = ["atomic_write", "atomic_savez", "atomic_write_text", "load_npz", "NPZ_READ_ERRORS"]
+__all__ = ["atomic_write", "atomic_savez", "atomic_write_text", "load_npz", "NPZ_READ_ERRORS",
+           "CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "check_meta"]
+
+CHECKPOINT_FORMAT = 1
 
 # What np.load / reading a member of a damaged npz raises besides ValueError.
 NPZ_READ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
@@ -70,3 +84,54 @@ def load_npz(path, what: str, required: tuple[str, ...]) -> dict:
     if missing:
         raise ValueError(f"{path}: not a {what} file; missing keys {missing}")
     return arrays
+
+
+def save_checkpoint(path, payload: dict) -> Path:
+    """Write `payload` (with "format" added) to `path` atomically; replaces an older checkpoint."""
+    return atomic_write(path, overwrite=True, write=lambda f: torch.save({"format": CHECKPOINT_FORMAT, **payload}, f))
+
+
+def load_checkpoint(path, map_location="cpu", required: Sequence[str] = (),
+                    hint: str = "resume from another one or start a new run directory") -> dict:
+    """Read a checkpoint; FileNotFoundError if missing, ValueError (naming the file) if it is
+    damaged, not a checkpoint of this project, or of another format version.
+
+    `required`: the top-level keys this kind of checkpoint must hold ("format" is always
+    required). `hint`: what to do about a damaged file, for the message.
+    """
+    path = Path(path)
+    required = ("format", *(k for k in required if k != "format"))
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as e:
+        first = (str(e).strip().splitlines() or [""])[0][:200]
+        raise ValueError(f"checkpoint {path} is damaged or not a checkpoint ({type(e).__name__}: {first}); "
+                         f"{hint}") from None
+    if not isinstance(payload, dict) or any(k not in payload for k in required):
+        missing = [k for k in required if not isinstance(payload, dict) or k not in payload]
+        raise ValueError(f"checkpoint {path} is not a vkgrl-newton checkpoint of the expected kind "
+                         f"(missing {missing})")
+    if payload["format"] != CHECKPOINT_FORMAT:
+        raise ValueError(f"checkpoint {path} has format {payload['format']}, this code reads {CHECKPOINT_FORMAT}")
+    return payload
+
+
+def check_meta(saved: dict, current: dict, path) -> None:
+    """ValueError naming every field in which the checkpoint's run differs from this one."""
+    saved, current = _flat(saved), _flat(current)
+    diff = [f"{k}: checkpoint {saved.get(k)!r}, now {current.get(k)!r}"
+            for k in sorted(set(saved) | set(current)) if saved.get(k) != current.get(k)]
+    if diff:
+        raise ValueError(f"checkpoint {path} belongs to a different run; " + "; ".join(diff))
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = tuple(v) if isinstance(v, list) else v
+    return out

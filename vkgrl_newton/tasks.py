@@ -1,7 +1,11 @@
-"""One table of per-task facts, from the thesis (shared/spec) unless noted.
+"""One table of per-task facts for PegInsert, GearMesh and NutThread, from the thesis unless noted.
 
-Later issues extend each TaskSpec with geometry, camera (Table 5.6) and the success test;
-what is here is what the KMP prior and the synthetic demonstrations need.
+Each TaskSpec holds the episode length (Table 5.1), the KMP inference parameters (Table 5.4),
+the initial-state randomization (Table 5.2) and the hand's start height (Isaac Lab Factory).
+The other per-task facts live where they are used: part dimensions in
+vkgrl_newton.assets_usd.dimensions, the env's part geometry and success test in
+vkgrl_newton.envs.assembly_env.TASK_GEOMETRY, the task camera (Table 5.6) in
+vkgrl_newton.sim.camera.TASK_CAMERAS.
 """
 
 from __future__ import annotations
@@ -31,8 +35,8 @@ class TaskSpec:
     ee_yaw_range: tuple[float, float]
     target_pos_noise: tuple[float, float, float]
     target_yaw_range: tuple[float, float]
-    # Isaac Lab Factory (reference/isaaclab_factory_facts.md section 7): hand start height
-    # above the fixed asset's tip, m
+    # Isaac Lab Factory (`hand_init_pos` z, factory_tasks_cfg.py): hand start height above the
+    # fixed asset's tip, m
     hand_init_height: float
 
     @property

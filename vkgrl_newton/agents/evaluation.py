@@ -110,12 +110,12 @@ def evaluate(env, policy, episodes: int, progress: bool = True, video_frames: li
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    resets0, ik0 = env.physics_resets_total, env.ik_failures_total
     if bool((env.episode_length_buf != 0).any()):
         env.reset()
     obs = env.get_observations()
     per_episode = []
     steps = 0
-    resets0 = env.physics_resets_total
     t0 = time.perf_counter()
     bar = tqdm(total=episodes * env.max_episode_length, desc=desc, disable=not progress, unit="step", leave=False)
     for _ in range(episodes):
@@ -140,7 +140,8 @@ def evaluate(env, policy, episodes: int, progress: bool = True, video_frames: li
         "success_rate": mean("success_rate"),
         "success_rate_any": mean("success_rate_any"),
         "mean_contact_force": mean("mean_contact_force"),
-        "peak_contact_force": max(e["peak_contact_force"] for e in per_episode),
+        "peak_contact_force": max((e["peak_contact_force"] for e in per_episode
+                                   if not math.isnan(e["peak_contact_force"])), default=float("nan")),
         "mean_peak_contact_force": mean("mean_peak_contact_force"),
         "time_to_first_success_s": mean("time_to_first_success_s"),
         "mean_episode_reward": mean("episode_reward"),
@@ -148,6 +149,8 @@ def evaluate(env, policy, episodes: int, progress: bool = True, video_frames: li
         "env_steps_per_s": steps * env.num_envs / wall,
         "wall_s": wall,
         "physics_resets": env.physics_resets_total - resets0,
+        # worlds whose reset IK did not converge (they ran their episode from the last iterate)
+        "ik_failures": env.ik_failures_total - ik0,
         "per_episode": per_episode,
     }
 

@@ -21,10 +21,11 @@ import warp as wp
 
 from ..kernels.kmp_horizon import kmp_horizon_pose, vec6f
 from ..kmp.demos import DemoSet
-from ..kmp.prior import load_or_fit_prior
+from ..kmp.prior import KMP_BETA, KMP_L, KMP_LAMBDA, load_or_fit_prior
+from ..cache import file_sha256
 from ..kmp.tables import KMPTables
 
-__all__ = ["KGRLActionPath", "load_or_make_prior", "demos_path_for"]
+__all__ = ["KGRLActionPath", "load_or_make_prior", "demos_path_for", "prior_record"]
 
 
 class KGRLActionPath:
@@ -77,44 +78,37 @@ class KGRLActionPath:
 
 def demos_path_for(cache_dir, task: str, num_demos: int, seed: int, geometry: str = "primitives",
                    device: str | None = None) -> Path:
-    """Where the scripted demonstrations are cached. The mesh variant's apart, per contact path
-    (SDF on CUDA, the triangle BVH and a coarser thread grid on a CPU: not the same physics)."""
+    """Where the scripted demonstrations are cached, keyed by the demonstrator's version (a changed
+    demonstrator records anew). The mesh variant's apart, per contact path (SDF on CUDA, the
+    triangle BVH and a coarser thread grid on a CPU: not the same physics)."""
+    from ..envs.scripted import DEMONSTRATOR_VERSION
+
     suffix = ""
     if geometry != "primitives":
-        from ..sim.scene import default_device
+        from ..runtime import default_device
 
         suffix = f"_{geometry}_{'sdf' if str(device or default_device()).startswith('cuda') else 'bvh'}"
-    return Path(cache_dir) / task / f"demos_scripted_factory_n{num_demos}_seed{seed}{suffix}.npz"
+    return (Path(cache_dir) / task
+            / f"demos_scripted_v{DEMONSTRATOR_VERSION}_factory_n{num_demos}_seed{seed}{suffix}.npz")
 
 
 def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path | None = None, num_demos: int = 16,
                        num_envs: int = 16, device: str | None = None, seed: int = 0,
-                       geometry: str = "primitives", log=print) -> tuple[KMPTables, Path]:
+                       geometry: str = "primitives", lam: float = KMP_LAMBDA, beta: float = KMP_BETA,
+                       l: float = KMP_L, log=print) -> tuple[KMPTables, Path]:
     """The task's KMP tables, with the demonstrations they come from recorded first if missing.
 
     demos: a demonstration npz of your own; None records `num_demos` scripted ones in the
     Factory env (6D, `num_envs` worlds, the parts' collision `geometry`: sim.scene.GEOMETRIES)
-    into `cache_dir/<task>/` once and reuses them. The tables
-    are cached beside the demonstrations (kmp.prior.load_or_fit_prior: keyed by content).
-    Returns (tables, demonstration path).
+    into `cache_dir/<task>/` once and reuses them. The tables (KMP parameters lam, beta, l) are
+    cached beside the demonstrations (kmp.prior.load_or_fit_prior: keyed by content). Both are
+    made under the demonstration file's cache lock (`vkgrl_newton.cache`): runs started together
+    record and fit once. Returns (tables, demonstration path).
     """
+    from ..cache import entry_lock
+
     if demos is None:
         path = demos_path_for(cache_dir, task, num_demos, seed, geometry, device)
-        if not path.exists():
-            from ..envs.assembly_env import AssemblyEnv, EnvConfig
-            from ..envs.demonstrations import record_demonstrations
-            from ..sim.scene import SimConfig
-
-            log(f"recording {num_demos} scripted {task} demonstrations into {path} (once; cached)")
-            env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_envs, device=device,
-                                        seed=seed, sim=SimConfig(geometry=geometry)))
-            demo_set, episodes = record_demonstrations(env, num_demos, seed=seed, max_episodes=max(4, 3 * num_demos // num_envs + 2))
-            if demo_set is None or len(demo_set.demo_lengths) < num_demos:
-                got = 0 if demo_set is None else len(demo_set.demo_lengths)
-                raise RuntimeError(f"the scripted demonstrator seated the part in only {got} of {episodes * num_envs} "
-                                   f"episodes, {num_demos} needed; see docs/benchmarks.md for its success rate")
-            path.parent.mkdir(parents=True, exist_ok=True)
-            demo_set.save(path)
     else:
         path = Path(demos)
         if not path.exists():
@@ -122,6 +116,35 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
         demo_task = DemoSet.load(path).task
         if demo_task != task:
             raise ValueError(f"demonstrations {path} are of task {demo_task!r}, not {task!r}")
-    tables, tables_path, rebuilt = load_or_fit_prior(path, action_dim=action_dim, seed=seed)
+    with entry_lock(path, log=log, what=f"the {task} demonstrations"):
+        if demos is None and not path.exists():
+            _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log)
+        tables, tables_path, rebuilt = load_or_fit_prior(path, action_dim=action_dim, lam=lam, beta=beta, l=l,
+                                                         seed=seed)
     log(f"KMP prior {'fitted' if rebuilt else 'loaded'}: {tables_path}")
     return tables, path
+
+
+def prior_record(tables: KMPTables, demos_path) -> dict:
+    """What a KGRL run records of its prior (checkpoint meta "prior"): the demonstration file and its
+    sha256, the KMP parameters and the number of demonstrations (`cache.check_unchanged` checks the file)."""
+    return {"demos": str(demos_path), "demos_sha256": file_sha256(demos_path), "lam": float(tables.lam),
+            "beta": float(tables.beta), "l": float(tables.l), "num_demos": int(len(DemoSet.load(demos_path).demo_lengths))}
+
+
+def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log) -> None:
+    from ..envs.assembly_env import AssemblyEnv, EnvConfig
+    from ..envs.demonstrations import record_demonstrations
+    from ..sim.scene import SimConfig
+
+    log(f"recording {num_demos} scripted {task} demonstrations into {path} (once; cached)")
+    env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_envs, device=device,
+                                seed=seed, sim=SimConfig(geometry=geometry)))
+    demo_set, episodes = record_demonstrations(env, num_demos, seed=seed,
+                                               max_episodes=max(4, 3 * num_demos // num_envs + 2))
+    if demo_set is None or len(demo_set.demo_lengths) < num_demos:
+        got = 0 if demo_set is None else len(demo_set.demo_lengths)
+        raise RuntimeError(f"the scripted demonstrator seated the part in only {got} of {episodes * num_envs} "
+                           f"episodes, {num_demos} needed; see docs/benchmarks.md for its success rate")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    demo_set.save(path)

@@ -10,8 +10,8 @@ Forge the smoothed contact force (3, + N(0, 1 N) noise), plus an optional vision
 (`vision_latent_dim`, filled by `set_vision_latent`). Dimensions 8 / 11 (+16).
 
 Actions, two entry points:
-- `step(actions)`: a in [-1, 1]^D, D in {4, 6}, Factory's delta-pose mapping (isaaclab facts 5.2,
-  5.3): action EMA, then every physics step the TCP target is the current TCP pose moved by
+- `step(actions)`: a in [-1, 1]^D, D in {4, 6}, Factory's delta-pose mapping (Isaac Lab
+  `factory_env.py`, `_pre_physics_step` / `_apply_action`): action EMA, then every physics step the TCP target is the current TCP pose moved by
   a * (0.02 m, 0.097 rad), kept within 5 cm of the target frame. 4D: (x, y, z, yaw), roll stays
   pi and pitch 0. 6D: all three rotations, with the tilt of the gripper axis from straight down
   bounded by `max_tilt` (default 30 degrees; this project's choice: the thesis gives no bound,
@@ -24,24 +24,28 @@ Actions, two entry points:
 
 Reward (thesis 5.2): Factory 4 per step in the success state (held part centred on its target
 within 2.5 mm and seated within 1 mm, the nut within 0.75 mm and with the TCP yaw below 0,
-design.md and `TASK_GEOMETRY`); Forge adds -0.001 (|dp|/0.02 + sum |d angle|/0.097)
+Isaac Lab's `_get_curr_successes` and `TASK_GEOMETRY`); Forge adds -0.001 (|dp|/0.02 + sum |d angle|/0.097)
 (eqs. 5.11-5.18, dp = tcp - command) and -max(0, |f_smooth| - 7.5 N) (eq. 5.19).
 
-Forge family (`randomize_dynamics`, on by default for forge; facts 9.3): Kp (565, 28) scaled per
+Forge family (`randomize_dynamics`, on by default for forge; Isaac Lab `forge_env.py`,
+`forge_env_cfg.py`): Kp (565, 28) scaled per
 component by [0.71, 1.41], Kd = 2 sqrt(Kp), action scales and EMA factor randomized, a force /
 torque dead zone U(0, 1) x (5 N, 1 N m) drawn at reset and again every 2 s, held-part mass +-5 g
-per reset. Not randomized here: friction (Isaac Lab's own defaults overwrite its friction events,
-facts 9.3) and the contact-penalty threshold (Forge draws U(5, 10) N; the thesis fixes 7.5 N).
+per reset. Not randomized here: friction (Isaac Lab's `FactoryEnv._set_default_dynamics_parameters` overwrites its
+friction events) and the contact-penalty threshold (Forge draws U(5, 10) N; the thesis fixes 7.5 N).
 
-Episodes last the task's length (150 steps = 10 s; NutThread 225 = 15 s) and end by time-out only, all worlds together (Factory). A
-physics blow-up (NaN, runaway velocity, a part thrown away) in one world resets that world
-alone and is counted in `extras["log"]["/physics_resets"]`.
+Episodes last the task's length (150 steps = 10 s; NutThread 225 = 15 s) and end by time-out
+only, all worlds together (Factory). A physics blow-up (NaN, runaway velocity, a part thrown
+away) in one world resets that world alone (its grasp settled like any reset's, the other worlds
+untouched by it) and is counted in `extras["log"]["/physics_resets"]`. A reset whose IK does not
+converge is counted in `extras["log"]["/ik_failures"]` and `ik_failures_total` (`_reset_worlds`).
 
 `step` and `step_pose` return (obs, rewards, dones, extras), rsl-rl's contract: dones = time-out
 or blow-up, observations already those after the auto-reset. extras: "time_outs" (E,) bool;
 "physics_resets" (E,) bool, the worlds reset after a blow-up (their transition is not the
 policy's doing; learners drop it); "final_observations", only on steps where some world ended,
-the observations before the reset (time-outs bootstrap from them); "log"; "episode" (metrics).
+the observations before the reset (time-outs bootstrap from them); "log"; "episode" (metrics
+of the timed-out worlds' episodes, less any world that blew up on that last step).
 """
 
 from __future__ import annotations
@@ -59,10 +63,14 @@ from tensordict import TensorDict
 
 import newton
 
+from ..assets_usd.dimensions import BOLT_TIP_HEIGHT, GEAR_BASE_HEIGHT, GEAR_HEIGHT, GEAR_HUB_RADIUS, GEAR_MEDIUM_X
+from ..assets_usd.dimensions import FIXED_ASSET_NOMINAL_POS as FIXED_ASSET_NOMINAL  # the authored fixed-asset position
+from ..assets_usd.dimensions import HOLE_DEPTH, NUT_ACROSS_FLATS, PEG_DIAMETER, THREAD_PITCH
 from ..kernels.contact_forces import contact_force_reduce, contact_force_reset, contact_force_update
 from ..kernels.kmp_horizon import vec6f
 from ..kernels.osc import osc_torques
-from ..kmp.pose import euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from_euler_xyz, quat_log, quat_mul, quat_rotate
+from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from_euler_xyz, quat_log, quat_mul, quat_rotate
+from ..runtime import torch_device
 from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene, make_solver
 from ..tasks import get_task
 
@@ -71,7 +79,7 @@ __all__ = ["EnvConfig", "AssemblyEnv", "FAMILIES", "ACTION_DIMS", "TASK_GEOMETRY
 FAMILIES = ("factory", "forge")
 ACTION_DIMS = (4, 6)
 
-# Factory / Forge controller facts (reference/isaaclab_factory_facts.md sections 5, 9)
+# Factory / Forge controller (Isaac Lab `factory_env_cfg.py`, `factory_control.py`, `forge_env_cfg.py`)
 FACTORY_KP = (100.0, 100.0, 100.0, 30.0, 30.0, 30.0)
 FORGE_KP = (565.0, 565.0, 565.0, 28.0, 28.0, 28.0)
 RESET_KP = (300.0, 300.0, 300.0, 20.0, 20.0, 20.0)
@@ -79,7 +87,7 @@ POS_ACTION_SCALE = 0.02  # m per step at |a| = 1
 ROT_ACTION_SCALE = 0.097  # rad per step at |a| = 1
 POS_ACTION_BOUND = 0.05  # m, target kept within this box around the target frame
 FACTORY_EMA = 0.2
-# Forge dynamics randomization (facts 9.3) beyond the gains: the force/torque dead zone is drawn
+# Forge dynamics randomization (`forge_env_cfg.py`, `forge_events.py`) beyond the gains: the force/torque dead zone is drawn
 # again every 2 s (30 control steps), and the held part's mass moves by up to 5 g at each reset
 FORGE_DEAD_ZONE = (5.0, 5.0, 5.0, 1.0, 1.0, 1.0)  # N, N m at U = 1
 FORGE_DEAD_ZONE_PERIOD_STEPS = 30
@@ -94,18 +102,20 @@ FORCE_OBS_NOISE = 1.0  # N, Forge
 CONTACT_PENALTY_THRESHOLD = 7.5  # N, eq. 5.19
 SUCCESS_REWARD = 4.0
 TARGET_OBS_NOISE = 0.001  # m, per axis, per episode (eq. 5.23 / Factory)
-FIXED_ASSET_NOMINAL = (0.6, 0.0, 0.05)
 # Physics steps of gripper closing at reset. Factory uses 30 (0.25 s); here the pads (Menagerie's
 # geometry, self-centring) then keep centring a peg placed off-centre by the in-hand noise for up to
 # another second: measured, the part moved up to 2.3 mm in the grasp during the first 15 control
 # steps of an episode after a 30-step settle. 150 steps (1.25 s) start every episode settled.
 GRIP_SETTLE_STEPS = 150
 MAX_LIN_VEL, MAX_ANG_VEL = 20.0, 200.0  # beyond these a world counts as blown up
+# reset IK (damped least squares): draws of the hand pose tried per world, and when it has converged
+IK_ATTEMPTS = 4
+IK_POS_TOLERANCE, IK_ROT_TOLERANCE = 1e-3, 1e-2  # m, rad
 
 
 @dataclass(frozen=True)
 class TaskGeometry:
-    """Held/fixed part facts the env needs (reference/isaaclab_factory_facts.md sections 2, 6-8).
+    """Held/fixed part facts the env needs (Isaac Lab `factory_tasks_cfg.py`: assets, success thresholds).
 
     Frames: the held part's origin is on its axis (peg and nut: bottom face; gear: the base
     plate's bottom level, 5 mm under its teeth, Factory's "assembled coordinates"); the target
@@ -130,22 +140,30 @@ class TaskGeometry:
 
 # Finger pads touch a round part of radius r at q = r - 0.883 mm (measured on the 7.986 mm peg:
 # q = 3.11 mm); the drive target 10 mm further in squeezes with ke 2000 N/m * 10 mm = 20 N.
-# Fingers open to Factory's held diameter / 2 * 1.25 (facts 7.1).
+# Fingers open to Factory's held diameter / 2 * 1.25 (`factory_env.py`, `_full_reset`).
 _PAD = 0.000883
 TASK_GEOMETRY = {
-    "PegInsert": TaskGeometry(0.025, 0.032392, (0.003, 0.0, 0.003), 0.04 * 0.025, 0.0025, 0.00499, 0.00311 - 0.010),
+    # the fingertips grip the peg's top 17.608 mm (Factory: peg length - fingerpad length, 0.032392);
+    # Factory's success: seated within 0.04 of the fixed part's height (success_threshold, factory_tasks_cfg.py)
+    "PegInsert": TaskGeometry(
+        fixed_height=HOLE_DEPTH, held_in_tcp=0.032392, held_pos_noise=(0.003, 0.0, 0.003), success_z=0.04 * HOLE_DEPTH,
+        success_xy=0.0025, finger_open=0.00499, finger_grip_target=PEG_DIAMETER / 2 - _PAD - 0.010),
     # the fingers hold the gear's hub (r 10 mm, z 25..45 mm): TCP 29 mm above the origin, so the
-    # pads stay above the teeth (z <= 25 mm) over the +-3 mm in-hand noise
+    # pads stay above the teeth (z <= 25 mm) over the +-3 mm in-hand noise; fingers open to Factory's
+    # gear "diameter" 0.03; target base on the medium shaft, the fixed tip at its top
     "GearMesh": TaskGeometry(
-        fixed_height=0.025, held_in_tcp=0.029, held_pos_noise=(0.003, 0.0, 0.003), success_z=0.05 * 0.020,
-        success_xy=0.0025, finger_open=0.03 / 2 * 1.25, finger_grip_target=0.010 - _PAD - 0.010,
-        target_offset=(0.02025, 0.0, 0.0), held_bottom=0.005),
-    # the nut's bottom face level with the fingertips; the pads close on two flats (24 mm);
-    # target base 1.5 pitches under the bolt tip (0.035)
+        fixed_height=GEAR_BASE_HEIGHT + GEAR_HEIGHT, held_in_tcp=0.029, held_pos_noise=(0.003, 0.0, 0.003),
+        success_z=0.05 * GEAR_HEIGHT, success_xy=0.0025, finger_open=0.03 / 2 * 1.25,
+        finger_grip_target=GEAR_HUB_RADIUS - _PAD - 0.010, target_offset=(GEAR_MEDIUM_X, 0.0, 0.0),
+        held_bottom=GEAR_BASE_HEIGHT),
+    # the nut's bottom face level with the fingertips; the pads close on two flats;
+    # target base 1.5 pitches under the bolt tip, success within 0.375 pitch of it
     "NutThread": TaskGeometry(
-        fixed_height=0.035, held_in_tcp=0.0, held_pos_noise=(0.0, 0.003, 0.003), success_z=0.375 * 0.002,
-        success_xy=0.0025, finger_open=0.024 / 2 * 1.25, finger_grip_target=0.012 - _PAD - 0.010,
-        target_offset=(0.0, 0.0, 0.035 - 1.5 * 0.002), success_tcp_yaw_max=0.0, unidirectional_yaw=True),
+        fixed_height=BOLT_TIP_HEIGHT, held_in_tcp=0.0, held_pos_noise=(0.0, 0.003, 0.003),
+        success_z=0.375 * THREAD_PITCH, success_xy=0.0025, finger_open=NUT_ACROSS_FLATS / 2 * 1.25,
+        finger_grip_target=NUT_ACROSS_FLATS / 2 - _PAD - 0.010,
+        target_offset=(0.0, 0.0, BOLT_TIP_HEIGHT - 1.5 * THREAD_PITCH), success_tcp_yaw_max=0.0,
+        unidirectional_yaw=True),
 }
 
 
@@ -193,7 +211,7 @@ def _vec(t: torch.Tensor, dtype):
 
 
 class AssemblyEnv(VecEnv):
-    """Batched PegInsert (later GearMesh, NutThread) in Newton; see the module docstring."""
+    """Batched PegInsert, GearMesh and NutThread in Newton; see the module docstring."""
 
     def __init__(self, cfg: EnvConfig, scene: Scene | None = None):
         self.cfg = cfg
@@ -209,12 +227,11 @@ class AssemblyEnv(VecEnv):
         self.scene = scene
         self.model = scene.model
         self.device = scene.device
-        self.tdev = torch.device("cuda", 0) if self.device.startswith("cuda") else torch.device("cpu")
+        self.tdev = torch_device(self.device)  # the torch device sharing the Warp device's memory (cuda:1 -> cuda:1)
         self.num_envs = cfg.num_envs
         self.num_actions = cfg.action_dim
         self.max_episode_length = self.task.episode_steps
         self.generator = torch.Generator(device=self.tdev).manual_seed(cfg.seed)
-        self.np_rng = np.random.default_rng(cfg.seed)
         self.substeps = scene.config.substeps
         self.substep_dt = scene.config.substep_dt
 
@@ -283,7 +300,7 @@ class AssemblyEnv(VecEnv):
         self.vision_source = None  # attach_vision
         self._state_version, self._latent_version = 0, -1  # the latent is refreshed when they differ
         self.physics_resets_total = 0
-        self._physics_resets_step = 0
+        self.ik_failures_total, self._ik_failures_step = 0, 0  # reset IK that did not converge (_reset_worlds)
         self.obs_dim = observation_dim(cfg.family, cfg.vision_latent_dim)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(self.obs_dim,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(cfg.action_dim,), dtype=np.float32)
@@ -412,7 +429,7 @@ class AssemblyEnv(VecEnv):
         kp_nom = torch.tensor(FORGE_KP if self.cfg.family == "forge" else FACTORY_KP, device=self.tdev)
         kp = kp_nom.expand(n, 6).clone()
         if self.cfg.dynamics_randomized:
-            # Forge (facts 9.3): x (1 + U(0, noise)), inverted with p = 0.5
+            # Forge (`forge_env.py`, `_reset_idx`): x (1 + U(0, noise)), inverted with p = 0.5
             kp = kp * self._forge_scale(n, 6, 0.41)
             self.pos_scale[mask] = POS_ACTION_SCALE * self._forge_scale(n, 1, 0.25).expand(n, 3)
             self.rot_scale[mask] = ROT_ACTION_SCALE * self._forge_scale(n, 1, 0.29).expand(n, 3)
@@ -453,7 +470,7 @@ class AssemblyEnv(VecEnv):
 
     def reset(self) -> TensorDict:
         """Reset every world (Factory resets all worlds together) and return the observations."""
-        self._reset_worlds(torch.ones(self.num_envs, dtype=torch.bool, device=self.tdev), settle=True)
+        self._reset_worlds(torch.ones(self.num_envs, dtype=torch.bool, device=self.tdev))
         return self.get_observations()
 
     def _place_fixed_part(self, mask: torch.Tensor) -> None:
@@ -483,7 +500,7 @@ class AssemblyEnv(VecEnv):
         self.target_frame_pos_w[mask] = tip + noise
 
     def _solve_ik(self, mask: torch.Tensor, pos_w: torch.Tensor, quat_w: torch.Tensor, iters: int = 40):
-        """Damped least squares (facts 5.6, lambda 0.1) on the arm joints of the masked worlds.
+        """Damped least squares (Factory's `set_pos_inverse_kinematics`, lambda 0.1) on the masked worlds' arm joints.
 
         Kinematic only (no physics): eval_fk + eval_jacobian on the model, joints written in place.
         Returns the final position and rotation errors (n,).
@@ -520,13 +537,15 @@ class AssemblyEnv(VecEnv):
         com = wp.to_torch(self.model.body_com)[self.hand_idx]
         return hand[:, :3] + quat_rotate(hand[:, 3:], com)
 
-    def _reset_worlds(self, mask: torch.Tensor, settle: bool) -> None:
-        """Factory's reset for the masked worlds (facts section 7).
+    def _reset_worlds(self, mask: torch.Tensor) -> None:
+        """Factory's reset of the masked worlds (Isaac Lab `factory_env.py`, `randomize_initial_state`).
 
-        settle=True (all worlds, at episode boundaries): fingers open, peg placed, then the gripper
-        closes for 0.25 s while the controller holds the pose. settle=False (a single world after a
-        blow-up, while the others keep running): the fingers are put at their contact opening
-        around the peg and the squeeze takes hold during the next steps.
+        Fixed part placed and the target frame drawn; hand above the fixed tip by IK (up to 4
+        draws; a world whose IK has not converged after the 4th keeps the last iterate, a hand
+        pose that may be off the drawn one by more than 1 mm / 0.01 rad: it is counted in
+        `ik_failures_total` and in the step's `log["/ik_failures"]`, and its episode runs from
+        there); fingers open, held part placed in the hand, then the grasp settles
+        (`_settle_grasp`) whichever worlds reset: the others are not advanced by it.
         """
         n = int(mask.sum())
         if n == 0:
@@ -540,14 +559,13 @@ class AssemblyEnv(VecEnv):
         if self.cfg.dynamics_randomized:
             self._randomize_held_mass(mask)
 
-        # hand target above the fixed tip (facts 7.5), IK with retries from the reset posture
+        # hand target above the fixed tip (Factory's `hand_init_pos`), IK with retries from the reset posture
         tip = self.fixed_tip_w[mask]
         todo = torch.ones(n, dtype=torch.bool, device=self.tdev)
         hand_pos = torch.zeros(n, 3, device=self.tdev)
         hand_quat = torch.zeros(n, 4, device=self.tdev)
-        ik_fail = 0
         midx = mask.nonzero().squeeze(1)
-        for attempt in range(4):
+        for attempt in range(IK_ATTEMPTS):
             k = int(todo.sum())
             noise = self._uniform(k, [-a for a in task.ee_pos_noise], list(task.ee_pos_noise))
             hand_pos[todo] = tip[todo] + torch.tensor((0.0, 0.0, task.hand_init_height), device=self.tdev) + noise
@@ -557,14 +575,15 @@ class AssemblyEnv(VecEnv):
             sub[midx[todo]] = True
             v["joint_q"][sub, :ARM_DOFS] = self.arm_q0
             e_p, e_r = self._solve_ik(sub, hand_pos[todo], hand_quat[todo])
-            ok = (e_p < 1e-3) & (e_r < 1e-2)
+            ok = (e_p < IK_POS_TOLERANCE) & (e_r < IK_ROT_TOLERANCE)
             still = todo.clone()
             still[todo] = ~ok
             todo = still
             if not todo.any():
                 break
-            ik_fail += int(todo.sum())
-        self._ik_failures = ik_fail
+        failed = int(todo.sum())
+        self.ik_failures_total += failed
+        self._ik_failures_step += failed
 
         # MuJoCo-Warp warm-starts each solve from the last accelerations: a world that blew up
         # keeps NaN there and would blow up again on every step, so clear it for reset worlds
@@ -574,32 +593,20 @@ class AssemblyEnv(VecEnv):
             if arr is not None and arr.shape[0] == E:
                 wp.to_torch(arr)[mask] = 0.0
 
-        # fingers and held part
-        fingers = slice(ARM_DOFS, ARM_DOFS + 2)
-        v["joint_q"][mask, fingers] = geo.finger_open if settle else geo.finger_grip_target + 0.010 - 0.0008
+        # fingers open, held part in the hand
+        v["joint_q"][mask, ARM_DOFS:ARM_DOFS + 2] = geo.finger_open
         v["joint_qd"][mask] = 0.0
         self._place_held_part(mask)
         newton.eval_fk(self.model, self.state_0.joint_q, self.state_0.joint_qd, self.state_0)
         self.state_1.assign(self.state_0)
 
-        # controller holds the current TCP pose; episode buffers
+        # controller holds the current TCP pose while the fingers close; episode buffers
         tcp_p, tcp_q = self.tcp_pose()
         self.cmd_pos_w[mask] = tcp_p[mask]
         self.cmd_quat_w[mask] = tcp_q[mask]
         self.actions_applied[mask] = 0.0
         self.control_finger_targets(mask, geo.finger_grip_target)
-        if settle:
-            saved = self.kp.clone(), self.kd.clone()
-            kp = torch.tensor(RESET_KP, device=self.tdev)
-            self.kp[:] = kp
-            self.kd[:] = 2.0 * torch.sqrt(kp)
-            self.kd[:, 3:] /= 10.0  # Factory's rot_deriv_scale during reset
-            for _ in range(GRIP_SETTLE_STEPS):
-                self._physics_step(collect_forces=False)
-            self.kp[:], self.kd[:] = saved
-            tcp_p, tcp_q = self.tcp_pose()
-            self.cmd_pos_w[mask] = tcp_p[mask]
-            self.cmd_quat_w[mask] = tcp_q[mask]
+        self._settle_grasp(mask)
         contact_force_reset(
             reset_mask=wp.from_torch(mask), force_smoothed_w=self._wp["force_smoothed_w"],
             force_norm_sum=self._wp["force_norm_sum"], force_sample_count=self._wp["force_count"],
@@ -612,12 +619,58 @@ class AssemblyEnv(VecEnv):
         self.episode_reward[mask] = 0.0
         self.success_any[mask] = False
 
+    def _settle_grasp(self, mask: torch.Tensor) -> None:
+        """Close the gripper on the held part for GRIP_SETTLE_STEPS physics steps under Factory's
+        reset gains, the controller holding the pose; then the command is the settled TCP pose.
+
+        Physics steps all worlds at once, so when only some reset (a blow-up) the others are put
+        back afterwards exactly as they were (`_physics_rows`): to them the settle never happened.
+        """
+        keep = ~mask
+        kept = None
+        if bool(keep.any()):
+            kept = {name: rows[keep].clone() for name, rows in self._physics_rows().items()}
+        saved = self.kp.clone(), self.kd.clone()
+        kp = torch.tensor(RESET_KP, device=self.tdev)
+        self.kp[:] = kp
+        self.kd[:] = 2.0 * torch.sqrt(kp)
+        self.kd[:, 3:] /= 10.0  # Factory's rot_deriv_scale during reset
+        for _ in range(GRIP_SETTLE_STEPS):
+            self._physics_step(collect_forces=False)
+        self.kp[:], self.kd[:] = saved
+        if kept is not None:
+            for name, rows in self._physics_rows().items():
+                rows[keep] = kept[name]
+        tcp_p, tcp_q = self.tcp_pose()
+        self.cmd_pos_w[mask] = tcp_p[mask]
+        self.cmd_quat_w[mask] = tcp_q[mask]
+
+    def _physics_rows(self) -> dict[str, torch.Tensor]:
+        """Every per-world array a physics step reads and writes, as torch views (E, ...) of the
+        live buffers: the state it steps from, the solver's warm start, the controller's outputs.
+        (What a step derives afresh, e.g. contacts and Jacobians, is not listed.)"""
+        E = self.num_envs
+        s = self.state_0
+        rows = {
+            "joint_q": wp.to_torch(s.joint_q).view(E, -1), "joint_qd": wp.to_torch(s.joint_qd).view(E, -1),
+            "body_q": wp.to_torch(s.body_q).view(E, -1), "body_qd": wp.to_torch(s.body_qd).view(E, -1),
+            "body_f": wp.to_torch(s.body_f).view(E, -1), "joint_f": wp.to_torch(self.control.joint_f).view(E, -1),
+            "tcp_pos_w": self.tcp_pos_w, "tcp_quat_w": self.tcp_quat_w, "tcp_twist_w": self.tcp_twist_w,
+            "wrench_w": self.wrench_w,
+        }
+        mjw_data = getattr(self.solver, "mjw_data", None)
+        for name in ("qacc_warmstart", "qacc", "qvel", "qpos", "time", "act"):
+            arr = getattr(mjw_data, name, None) if mjw_data is not None else None
+            if arr is not None and arr.shape[0] == E and arr.size:
+                rows[f"mjw_{name}"] = wp.to_torch(arr).view(E, -1)
+        return rows
+
     def control_finger_targets(self, mask: torch.Tensor, target: float) -> None:
         tq = wp.to_torch(self.control.joint_target_q).view(self.num_envs, -1)
         tq[mask, ARM_DOFS:ARM_DOFS + 2] = target
 
     def _place_held_part(self, mask: torch.Tensor) -> None:
-        """Held part in the gripper (facts 7.8): TCP flipped about its y, offset, in-hand noise."""
+        """Held part in the gripper (Factory's `_full_reset`): TCP flipped about its y, offset, in-hand noise."""
         newton.eval_fk(self.model, self.state_0.joint_q, self.state_0.joint_qd, self.state_0)
         tcp_p, tcp_q = self.tcp_pose()
         tcp_p, tcp_q = tcp_p[mask], tcp_q[mask]
@@ -764,37 +817,43 @@ class AssemblyEnv(VecEnv):
             log["/reward/contact_penalty"] = contact_penalty.mean()
         self.episode_reward += reward
 
-        # blow-ups: reset those worlds alone
+        # blow-ups: those worlds end here and are reset with the timed-out ones
         blown = self._blown_up()
-        n_blown = int(blown.sum())
         time_out = self.episode_length_buf >= self.max_episode_length
-        any_time_out = bool(time_out.any())  # one host sync, used twice below
+        n_blown, n_time_out = torch.stack((blown.sum(), time_out.sum())).tolist()  # the step's one host read
         extras: dict = {"time_outs": time_out.clone(), "log": log, "physics_resets": blown}
-        if n_blown or any_time_out:
+        if n_blown or n_time_out:
             # the observation each world ended its episode in, before the auto-reset replaces it:
             # off-policy learners bootstrap time-outs from it (rows of blown-up worlds are garbage)
             extras["final_observations"] = self.get_observations()
         if n_blown:
             self.physics_resets_total += n_blown
-            self._reset_worlds(blown, settle=False)
             reward = torch.where(blown, torch.zeros_like(reward), reward)
-
         log["/physics_resets"] = float(n_blown)
         log["/success"] = success.float().mean()
-        if any_time_out:
-            extras["episode"] = self.episode_metrics(time_out)
+        if n_time_out:
+            # the finished episodes' metrics, before the reset; a world that blew up on its last
+            # step has no meaningful episode (num_episodes counts the others)
+            extras["episode"] = self.episode_metrics(time_out & ~blown if n_blown else time_out)
             # per-world outcome of the finished episode, kept past the auto-reset (demo recording)
             self.last_episode_success_any = self.success_any.clone()
-            self.last_episode_success = self.success.clone()
             for k, val in extras["episode"].items():
                 if k != "env_ids":
                     log[f"/episode/{k}"] = val
-            self._reset_worlds(time_out, settle=bool(time_out.all()))
+        self._ik_failures_step = 0
+        if n_blown or n_time_out:
+            self._reset_worlds(time_out | blown)
+        log["/ik_failures"] = float(self._ik_failures_step)
         dones = time_out | blown
         return self.get_observations(), reward, dones, extras
 
     def episode_metrics(self, mask: torch.Tensor) -> dict:
         """Thesis metrics of the finished episodes of the masked worlds (means over those worlds)."""
+        if not bool(mask.any()):
+            nan = float("nan")
+            return {"success_rate": nan, "success_rate_any": nan, "mean_contact_force": nan, "peak_contact_force": nan,
+                    "mean_peak_contact_force": nan, "time_to_first_success_s": nan, "episode_reward": nan,
+                    "num_episodes": 0}
         count = self.force_count[mask].clamp_min(1).float()
         fs = self.first_success_step[mask]
         reached = fs >= 0

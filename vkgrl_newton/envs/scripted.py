@@ -46,11 +46,16 @@ from dataclasses import dataclass
 
 import torch
 
-from ..assets_usd.author import GEAR_TEETH
-from ..kmp.pose import (euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from_euler_xyz, quat_log, quat_mul,
-                        quat_rotate)
+from ..assets_usd.dimensions import GEAR_TEETH
+from ..rotations import (euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from_euler_xyz, quat_log, quat_mul,
+                         quat_rotate)
 
-__all__ = ["ScriptedInserter", "ScriptedParams"]
+__all__ = ["ScriptedInserter", "ScriptedParams", "DEMONSTRATOR_VERSION"]
+
+# Bumped whenever the demonstrator's behaviour changes (its phases, parameters or random draws):
+# the cached demonstrations and image sets are keyed by it, so a changed demonstrator never
+# reuses what the old one recorded.
+DEMONSTRATOR_VERSION = 1
 
 GEAR_TEETH_MEDIUM = GEAR_TEETH["medium"]  # the held gear's teeth: its yaw symmetry
 

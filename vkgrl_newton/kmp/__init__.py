@@ -4,7 +4,7 @@
 from .demos import DemoSet, synthetic_demos
 from .gmr import GMM, fit_gmm, gmr
 from .kmp import kmp_covariance, kmp_mean, ns_kmp_predict, rbf_kernel
-from .pose import eta_to_pose, pose_to_eta, quat_exp, quat_log, quat_mul, reference_quat
+from .pose import eta_to_pose, pose_to_eta, reference_quat
 from .prior import KMP_BETA, KMP_L, KMP_LAMBDA, fit_prior, load_or_fit_prior
 from .tables import KMPTables, build_kmp_tables, tables_path_for
 
@@ -20,9 +20,6 @@ __all__ = [
     "rbf_kernel",
     "pose_to_eta",
     "eta_to_pose",
-    "quat_exp",
-    "quat_log",
-    "quat_mul",
     "reference_quat",
     "KMP_LAMBDA",
     "KMP_BETA",

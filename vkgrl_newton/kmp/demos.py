@@ -29,8 +29,9 @@ import numpy as np
 import torch
 
 from .._io import atomic_savez, load_npz
+from ..rotations import quat_from_euler_xyz
 from ..tasks import get_task
-from .pose import pose_to_eta, quat_from_euler_xyz, unwrap_rotation_vectors
+from .pose import pose_to_eta, unwrap_rotation_vectors
 
 __all__ = ["DemoSet", "synthetic_demos"]
 

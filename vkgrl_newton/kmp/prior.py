@@ -36,7 +36,8 @@ from pathlib import Path
 from ..tasks import get_task
 from .demos import DemoSet
 from .gmr import DEFAULT_N_COMPONENTS, fit_gmm
-from .tables import KMPTables, build_kmp_tables, file_sha256, tables_path_for
+from ..cache import file_sha256
+from .tables import KMPTables, build_kmp_tables, tables_path_for
 
 __all__ = ["KMP_LAMBDA", "KMP_BETA", "KMP_L", "fit_prior", "load_or_fit_prior"]
 

@@ -21,7 +21,6 @@ reference whatever zeta is.
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,11 +28,12 @@ import numpy as np
 import torch
 
 from .._io import atomic_savez, load_npz
+from ..rotations import quat_exp, quat_mul
 from .gmr import GMM, gmr
 from .kmp import _check_nonnegative, _check_positive
-from .pose import AXES_4D, quat_exp, quat_mul
+from .pose import AXES_4D
 
-__all__ = ["KMPTables", "build_kmp_tables", "kmp_eta_torch", "kmp_pose_torch", "control_grid", "reference_window", "tables_path_for", "file_sha256"]
+__all__ = ["KMPTables", "build_kmp_tables", "kmp_eta_torch", "kmp_pose_torch", "control_grid", "reference_window", "tables_path_for"]
 
 TABLES_FORMAT_VERSION = 1
 
@@ -274,14 +274,6 @@ def kmp_pose_torch(step_index, zeta, mean, gain, target_pos_w, ref_quat_w):
     """The computation of the Warp kernel `kmp_horizon_pose` in torch: (pos (E, 3), quat (E, 4) xyzw)."""
     eta = kmp_eta_torch(step_index, zeta, mean, gain)
     return target_pos_w + eta[:, :3], quat_mul(ref_quat_w, quat_exp(eta[:, 3:]))
-
-
-def file_sha256(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def tables_path_for(demo_path, action_dim: int) -> Path:

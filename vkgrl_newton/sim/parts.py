@@ -31,8 +31,10 @@ import warp as wp
 import newton
 
 from ..assets_usd import TASK_USD
-from ..assets_usd.author import SOCKET_NOMINAL_POS
-from ..kmp.pose import euler_xyz_from_quat
+from ..assets_usd.dimensions import (FIXED_ASSET_NOMINAL_POS, GEAR_MEDIUM_X, GEAR_TEETH, THREAD_BOLT_RADIUS,
+                                     THREAD_BOLT_TOP, THREAD_CAPSULE_RADIUS, THREAD_NUT_BOTTOM, THREAD_NUT_RADIUS,
+                                     THREAD_PITCH)
+from ..rotations import euler_xyz_from_quat
 from .scene import GEOMETRIES, SimConfig, add_part_meshes, apply_contact_settings, make_solver_for, stage_root
 
 __all__ = ["PartsSim", "build_parts", "DriveResult", "run_drive"]
@@ -83,7 +85,7 @@ class DriveResult:
 
 
 def _yaw_tilt(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Yaw (XYZ Euler, kmp.pose) and the tilt of the body z axis from vertical, xyzw quats."""
+    """Yaw (XYZ Euler, rotations.euler_xyz_from_quat) and the tilt of the body z axis from vertical, xyzw quats."""
     _, _, yaw = euler_xyz_from_quat(torch.from_numpy(np.ascontiguousarray(q, dtype=np.float64)))
     x, y = q[..., 0], q[..., 1]
     zz = 1 - 2 * (x * x + y * y)  # z component of the rotated z axis
@@ -103,7 +105,7 @@ def run_drive(sim: PartsSim, start_pos, start_yaw, duration: float, force_z: flo
     contacts = pipeline.contacts()
 
     held = np.array([w * sim.bodies_per_world + sim.held_body for w in range(nw)])
-    origin = np.array(SOCKET_NOMINAL_POS)
+    origin = np.array(FIXED_ASSET_NOMINAL_POS)
     body_q = s0.body_q.numpy()
     for w, b in enumerate(held):
         body_q[b, :3] = origin + start_pos[w]
@@ -155,12 +157,9 @@ def advance_per_turn(result: DriveResult, world: int = 0, skip: float = 0.2) -> 
 
 def nut_rest_height(yaw: float) -> float:
     """Height of the nut's origin (bottom face) in the bolt frame where its bottom thread turn rests
-    on the bolt's top turn, for a nut yaw `yaw` relative to the bolt (author.py's helices: both
+    on the bolt's top turn, for a nut yaw `yaw` relative to the bolt (the authored helices: both
     start on their frame's +x; the nut's ridge sits above the bolt's by the axial offset at which
     the two capsules touch, given their radial offset)."""
-    from ..assets_usd.author import (THREAD_BOLT_RADIUS, THREAD_BOLT_TOP, THREAD_CAPSULE_RADIUS, THREAD_NUT_BOTTOM,
-                                     THREAD_NUT_RADIUS, THREAD_PITCH)
-
     radial = THREAD_NUT_RADIUS - THREAD_BOLT_RADIUS
     axial = math.sqrt((2 * THREAD_CAPSULE_RADIUS) ** 2 - radial**2)
     frac = (yaw / (2 * math.pi)) % 1.0
@@ -176,8 +175,6 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     config = lambda nw: SimConfig(num_worlds=nw, device=args.device, geometry=args.geometry)  # noqa: E731
     if args.task == "NutThread":
-        from ..assets_usd.author import THREAD_BOLT_TOP, THREAD_NUT_BOTTOM, THREAD_PITCH
-
         sim = build_parts("NutThread", config=config(1))
         # engaged on the bolt's top turn; the mesh bolt's top turn is the thread's runout: one lower
         z0 = nut_rest_height(math.pi / 2) - (THREAD_PITCH if args.geometry == "mesh" else 0.0)
@@ -187,8 +184,6 @@ def main(argv=None) -> int:
               f"advance {1e3 * advance_per_turn(r):.3f} mm/turn, max tilt {math.degrees(r.tilt.max()):.2f} deg, "
               f"contacts {r.contacts.mean():.0f}")
     else:
-        from ..assets_usd.author import GEAR_MEDIUM_X, GEAR_TEETH
-
         sim = build_parts("GearMesh", config=config(2))
         pitch = 2 * math.pi / GEAR_TEETH["medium"]
         r = run_drive(sim, (GEAR_MEDIUM_X, 0.0, 0.03), [0.0, pitch / 2], 0.5, force_z=-1.0)

@@ -20,12 +20,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 import warp as wp
 
 import newton
 
 from ..assets_usd import FRANKA_USD, TASK_USD
-from ..assets_usd.author import FIXED_ASSET_PRIM, SOCKET_NOMINAL_POS  # authored pose of the fixed-asset frame
+from ..assets_usd import dimensions as dims
+from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS  # noqa: F401  the env takes them from here
+from ..rotations import quat_conjugate, quat_mul, quat_rotate
+from ..runtime import default_device
 from ..tasks import DECIMATION, SIM_DT, get_task
 
 __all__ = ["SimConfig", "Scene", "build_scene", "default_device", "SOLVERS"]
@@ -34,8 +38,8 @@ SOLVERS = ("mujoco", "steel")
 # Collision geometry of the GearMesh / NutThread parts: the authored primitives (box teeth,
 # capsule threads; the default), or closed triangle meshes (solid box-tooth gears, ISO 68-1
 # threads; assets_usd/part_meshes.py) which on CUDA get signed distance fields (Newton builds
-# mesh SDFs on CUDA only) and on a CPU collide through Newton's triangle BVH path (slow:
-# reference/threads_gears_cpu_facts.md measured 12-30x the primitives)
+# mesh SDFs on CUDA only) and on a CPU collide through Newton's triangle BVH path (slow: NutThread
+# env steps ~30x slower than on the primitives with newton 1.8.0; docs/benchmarks.md, "The mesh variant")
 GEOMETRIES = ("primitives", "mesh")
 SDF_VOXEL = {"GearMesh": 0.00025, "NutThread": 0.0001}  # m: a quarter of a tooth clearance, half a thread crest
 SDF_BAND = (-0.002, 0.002)  # m, narrow band of the SDFs
@@ -54,21 +58,14 @@ def geometry_error(task: str, geometry: str) -> str | None:
         return f"geometry 'mesh' exists for {sorted(SDF_VOXEL)}, not {task} (its primitives are exact)"
     return None
 
-# Factory's reset posture (reference/isaaclab_factory_facts.md section 3); also the null-space target
-FACTORY_RESET_JOINTS = (1.5178e-3, -0.19651, -1.4364e-3, -1.9761, -2.7717e-4, 1.7796, 0.78556)
-# Factory's null-space posture (section 5.4)
-FACTORY_NULL_JOINTS = (-1.3003, -0.4015, 1.1791, -2.1493, 0.4001, 1.9425, 0.4754)
 ARM_DOFS = 7
-
-
-def default_device() -> str:
-    """'cuda:0' when Warp sees a CUDA device, else 'cpu'."""
-    return "cuda:0" if wp.is_cuda_available() else "cpu"
 
 
 @dataclass(frozen=True)
 class SimConfig:
-    """Physics settings. Defaults: reference/peg_grip_cpu_facts.md section 7 (measured on CPU)."""
+    """Physics settings. Defaults: measured for this project on a CPU (newton 1.8.0) with a gripper-held
+    peg: with them 160 of 162 scripted insertions succeeded; 2 substeps let the fingers pass through
+    the peg, SolverSteel jammed."""
 
     num_worlds: int = 16
     device: str | None = None  # None: cuda:0 when present, else cpu
@@ -153,7 +150,6 @@ class Scene:
     socket_shapes: wp.array  # (E, Ns) int32 global shape indices of the fixed part
     socket_local: wp.array  # (Ns,) transform of each socket shape in the socket frame
     gripper_group: wp.array  # (S,) int32: 1 for the held part and finger pads, 0 otherwise
-    finger_dofs: tuple[int, int] = (7, 8)
     labels: dict = field(default_factory=dict)
 
 
@@ -162,32 +158,6 @@ def _find(labels: list[str], suffix: str) -> int:
     if len(hits) != 1:
         raise ValueError(f"expected exactly one entry ending in {suffix!r}, found {len(hits)}")
     return hits[0]
-
-
-def _transform_inverse_np(p, q):
-    """Inverse of the rigid transform (p, q xyzw), numpy float64."""
-    x, y, z, w = q
-    qi = np.array([-x, -y, -z, w])
-    return -_rotate_np(qi, np.asarray(p)), qi
-
-
-def _rotate_np(q, v):
-    x, y, z, w = q
-    u = np.array([x, y, z])
-    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
-
-
-def _quat_mul_np(a, b):
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ]
-    )
 
 
 def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, dict]:
@@ -213,7 +183,7 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
         "tcp_site": _find(shapes, "/hand/tcp"),
     }
     finger_bodies = {info["left_finger"], info["right_finger"]}
-    fixed_prefix = f"/{stage_root(task)}/{FIXED_ASSET_PRIM[task]}/"
+    fixed_prefix = f"/{stage_root(task)}/{dims.FIXED_ASSET_PRIM[task]}/"
     robot_bodies = {i for i, lbl in enumerate(bodies) if not lbl.startswith(f"/{stage_root(task)}/")}
     collide = int(newton.ShapeFlags.COLLIDE_SHAPES)
     pads, socket, group = [], [], []
@@ -224,7 +194,8 @@ def build_template(task: str, config: SimConfig) -> tuple[newton.ModelBuilder, d
             continue
         is_pad = body in finger_bodies and "/pad_" in lbl
         if body in robot_bodies and not is_pad:
-            # only the finger pads touch the parts (design.md); the rest of the arm is visual here
+            # only the finger pads touch the parts; the rest of the arm is visual here (measured: its
+            # shapes never touch the parts and colliding them costs about 25 % of a step)
             builder.shape_flags[s] &= ~collide
             continue
         apply_contact_settings(builder, s, config)
@@ -262,7 +233,6 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
     primitive's centre, which fails for a concave part: a solid disc mesh rests on a box plate
     within 0.01 mm, the same disc with a bore sinks 2.5 mm to the plate's mid-plane
     (docs/benchmarks.md). PegInsert has no mesh variant (its primitives are exact)."""
-    from ..assets_usd import author
     from ..assets_usd import part_meshes as pm
 
     error = geometry_error(task, "mesh")
@@ -297,46 +267,46 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
         return m
 
     held = next(i for i, lbl in enumerate(builder.body_label) if lbl.startswith(root))
-    nominal = wp.transform(author.SOCKET_NOMINAL_POS, wp.quat_identity())
-    z0, z1 = author.GEAR_BASE_HEIGHT, author.GEAR_BASE_HEIGHT + author.GEAR_HEIGHT
+    nominal = wp.transform(dims.FIXED_ASSET_NOMINAL_POS, wp.quat_identity())
+    z0, z1 = dims.GEAR_BASE_HEIGHT, dims.GEAR_BASE_HEIGHT + dims.GEAR_HEIGHT
     added = []
     if task == "GearMesh":
         clear(collide | visible, "medium_gear/tooth_", "gear_base/small_", "gear_base/large_")  # replaced
         clear(visible, "medium_gear/bore_")  # still colliding, drawn by the mesh around it
-        width = author.gear_tooth_width()
+        width = dims.gear_tooth_width()
 
         def outline(name):
-            z = author.GEAR_TEETH[name]
-            return pm.gear_outline(z, author.gear_root_radius(name), author.GEAR_MODULE * (z / 2 + 1), width)
+            z = dims.GEAR_TEETH[name]
+            return pm.gear_outline(z, dims.gear_root_radius(name), dims.GEAR_MODULE * (z / 2 + 1), width)
 
         a = 2 * np.pi * np.arange(48) / 48
-        bore = np.column_stack([author.GEAR_BORE_APOTHEM * np.cos(a), author.GEAR_BORE_APOTHEM * np.sin(a)])
+        bore = np.column_stack([dims.GEAR_BORE_APOTHEM * np.cos(a), dims.GEAR_BORE_APOTHEM * np.sin(a)])
         added.append(builder.add_shape_mesh(held, mesh=mesh(pm.extrude(outline("medium"), bore, z0, z1)),
-                                            cfg=cfg(author.PART_FRICTION), color=colour("medium_gear/tooth_"),
+                                            cfg=cfg(dims.PART_FRICTION), color=colour("medium_gear/tooth_"),
                                             label=root + "medium_gear/gear_mesh"))
-        for name, (cx, cy) in author.gear_centres().items():
+        for name, (cx, cy) in dims.gear_centres().items():
             if name == "medium":
                 continue
-            xform = wp.transform((author.SOCKET_NOMINAL_POS[0] + cx, author.SOCKET_NOMINAL_POS[1] + cy,
-                                  author.SOCKET_NOMINAL_POS[2]), wp.quat_identity())
+            xform = wp.transform((dims.FIXED_ASSET_NOMINAL_POS[0] + cx, dims.FIXED_ASSET_NOMINAL_POS[1] + cy,
+                                  dims.FIXED_ASSET_NOMINAL_POS[2]), wp.quat_identity())
             added.append(builder.add_shape_mesh(-1, xform=xform, mesh=mesh(pm.extrude(outline(name), None, z0, z1)),
-                                                cfg=cfg(author.PART_FRICTION), color=colour(f"gear_base/{name}_"),
+                                                cfg=cfg(dims.PART_FRICTION), color=colour(f"gear_base/{name}_"),
                                                 label=root + f"gear_base/{name}_gear_mesh"))
     else:
         clear(collide | visible, "nut/thread_", "bolt/thread_")
         clear(visible, "nut/hex_")
-        major = author.THREAD_BOLT_RADIUS + author.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
-        tip = author.BOLT_BASE_HEIGHT + author.BOLT_SHANK_HEIGHT
+        major = dims.THREAD_BOLT_RADIUS + dims.THREAD_CAPSULE_RADIUS  # 7.75 mm: the capsule thread's crest
+        tip = dims.BOLT_TIP_HEIGHT
         columns, rows = THREAD_MESH_GRID["sdf" if sdf_device is not None else "bvh"]
         # threaded up to where the capsule thread ends, a pilot above (as the primitives' core): both
         # variants land the nut at the same height, centred, and it descends only by turning
-        rod = pm.threaded_rod(author.THREAD_PITCH, major, author.BOLT_BASE_HEIGHT, tip, chamfer=0.001,
-                              thread_top=author.THREAD_BOLT_TOP, columns=columns, rows_per_pitch=rows)
-        nut = pm.threaded_bore(author.THREAD_PITCH, major, 0.00015, author.NUT_HEIGHT, author.NUT_ACROSS_FLATS,
+        rod = pm.threaded_rod(dims.THREAD_PITCH, major, dims.BOLT_BASE_HEIGHT, tip, chamfer=0.001,
+                              thread_top=dims.THREAD_BOLT_TOP, columns=columns, rows_per_pitch=rows)
+        nut = pm.threaded_bore(dims.THREAD_PITCH, major, 0.00015, dims.NUT_HEIGHT, dims.NUT_ACROSS_FLATS,
                                countersink=0.0005, columns=columns, rows_per_pitch=rows)
-        added.append(builder.add_shape_mesh(-1, xform=nominal, mesh=mesh(rod), cfg=cfg(author.BOLT_FRICTION),
+        added.append(builder.add_shape_mesh(-1, xform=nominal, mesh=mesh(rod), cfg=cfg(dims.BOLT_FRICTION),
                                             color=colour("bolt/thread_"), label=root + "bolt/thread_mesh"))
-        added.append(builder.add_shape_mesh(held, mesh=mesh(nut), cfg=cfg(author.NUT_FRICTION),
+        added.append(builder.add_shape_mesh(held, mesh=mesh(nut), cfg=cfg(dims.NUT_FRICTION),
                                             color=colour("nut/hex_"), label=root + "nut/thread_mesh"))
     meshes = set(added)
     for s in range(len(builder.shape_label)):
@@ -399,13 +369,11 @@ def build_scene(task: str, config: SimConfig | None = None) -> Scene:
     body_q0 = model.body_q.numpy()
     origins = np.array([body_q0[w * bpw + 0, :3] for w in range(nw)], dtype=np.float64)  # robot base link
     socket_ids = np.array([[w * spw + s for s in info["socket"]] for w in range(nw)], dtype=np.int32)
-    shape_tf = template.shape_transform
-    inv_p, inv_q = _transform_inverse_np(np.array(SOCKET_NOMINAL_POS), np.array([0.0, 0.0, 0.0, 1.0]))
-    socket_local = []
-    for s in info["socket"]:
-        p = np.array(shape_tf[s][:3], dtype=np.float64)
-        q = np.array(shape_tf[s][3:], dtype=np.float64)
-        socket_local.append(tuple(inv_p + _rotate_np(inv_q, p)) + tuple(_quat_mul_np(inv_q, q)))
+    # x_local = x_socket^-1 x_shape, float64; the socket frame is authored unrotated
+    shape_tf = torch.tensor(np.array([template.shape_transform[s] for s in info["socket"]], dtype=np.float64))
+    inv_q = quat_conjugate(torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)).expand(len(shape_tf), 4)
+    local_p = quat_rotate(inv_q, shape_tf[:, :3] - torch.tensor(dims.FIXED_ASSET_NOMINAL_POS, dtype=torch.float64))
+    socket_local = [tuple(row) for row in torch.cat((local_p, quat_mul(inv_q, shape_tf[:, 3:])), dim=1).tolist()]
 
     group = np.zeros(model.shape_count, dtype=np.int32)
     for w in range(nw):

@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from ..kmp.pose import euler_xyz_from_quat, quat_conjugate, quat_rotate
+from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_rotate
 from .dataset import ImageSetWriter
 
 __all__ = ["CollectConfig", "collect_images", "default_image_dir", "relative_target_state"]
@@ -153,6 +153,9 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
 
 
 def default_image_dir(cache_dir, task: str, resolution: int, num_images: int, seed: int = 0) -> Path:
-    """Where run.py caches a task's image set."""
-    return Path(cache_dir) / task / f"images_r{resolution}_n{num_images}_seed{seed}"
+    """Where run.py caches a task's image set, keyed by the demonstrator's version (its scripted
+    rounds are part of the set: a changed demonstrator collects anew)."""
+    from ..envs.scripted import DEMONSTRATOR_VERSION
+
+    return Path(cache_dir) / task / f"images_v{DEMONSTRATOR_VERSION}_r{resolution}_n{num_images}_seed{seed}"
 

@@ -2,14 +2,16 @@
 
     encoder, info = load_or_make_encoder("PegInsert", VISION_PRESETS["quick"], "runs/cache", "cpu")
 
-1. the image set (`vision.collect`): cache/<task>/images_r<R>_n<N>_seed<S>/, collected into a
-   temporary sibling directory and renamed when complete, so an interrupted collection leaves no
-   half set under the final name (a stale temporary directory of ours is removed and redone; two
-   runs that start on an empty cache at once must not share it: prepare it with one run first);
-2. the VAE (`vision.train`): cache/<task>/vae_r<R>_n<N>_e<E>_seed<S>/vae.pt; a VAE run that was
+1. the image set (`vision.collect`): cache/<task>/images_v<demonstrator version>_r<R>_n<N>_seed<S>/,
+   collected into a temporary sibling directory and renamed when complete, so an interrupted
+   collection leaves no half set under the final name (a stale temporary directory of ours is
+   removed and redone);
+2. the VAE (`vision.train`): cache/<task>/vae_v<version>_r<R>_n<N>_e<E>_seed<S>/vae.pt; a VAE run that was
    interrupted after its first epoch (checkpoints/last.pt but no metrics.json) is resumed, one
    stopped inside its first epoch restarted;
 3. the frozen encoder (`FrozenEncoder`) of that vae.pt, checked against task and resolution.
+Steps 1 and 2 each run under their cache entry's lock (`vkgrl_newton.cache`): runs that start
+together on an empty cache collect and train once, the others wait and reuse.
 
 Presets: `thesis` as Tables 5.5-5.6 (256 x 256, 130,000 images, 400 epochs, batch 128, eq. 4.48
 as written, GroupNorm: a GPU job); `quick`, small enough for a 2-core CPU (64 x 64, 4,096
@@ -34,6 +36,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..cache import entry_lock
 from .collect import CollectConfig, collect_images, default_image_dir
 from .train import train_vae
 from .vae import FrozenEncoder, VAEConfig, load_vae
@@ -65,7 +68,9 @@ VISION_PRESETS = {
 def default_vae_dir(cache_dir, task: str, preset: VisionPreset) -> Path:
     """cache/<task>/vae_r<R>_n<N>_e<E>[_b<B>][_kl<w>][_nonorm]_seed<S>: the settings that differ from
     the thesis's are in the name, so a VAE trained with other settings is never taken for it."""
-    name = f"vae_r{preset.resolution}_n{preset.num_images}_e{preset.vae_epochs}"
+    from ..envs.scripted import DEMONSTRATOR_VERSION  # the image set's key (collect.default_image_dir)
+
+    name = f"vae_v{DEMONSTRATOR_VERSION}_r{preset.resolution}_n{preset.num_images}_e{preset.vae_epochs}"
     if preset.vae_batch_size != 128:
         name += f"_b{preset.vae_batch_size}"
     if preset.kl_weight != 1.0:
@@ -82,29 +87,30 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
         vae, _ = load_vae(vae_path, expect={"task": task}, map_location=device)
     else:
         image_dir = default_image_dir(cache_dir, task, preset.resolution, preset.num_images, preset.seed)
-        if not (image_dir / "meta.json").is_file():
-            if image_dir.exists():
-                raise FileExistsError(f"{image_dir} exists but is not a complete image set (no meta.json); "
-                                      "it is not ours to delete: move it away and run again")
-            tmp = image_dir.with_name(image_dir.name + ".collecting")
-            if tmp.exists():  # our own interrupted collection
-                shutil.rmtree(tmp)
-            log(f"collecting {preset.num_images} task-camera images ({preset.resolution} px) -> {image_dir}")
-            collect_images(CollectConfig(task=task, num_images=preset.num_images, resolution=preset.resolution,
-                                         num_envs=num_envs, seed=preset.seed, device=device),
-                           tmp, progress=progress, log=log)
-            tmp.rename(image_dir)
+        with entry_lock(image_dir, log=log, what=f"the {task} image set"):
+            if not (image_dir / "meta.json").is_file():
+                if image_dir.exists():
+                    raise FileExistsError(f"{image_dir} exists but is not a complete image set (no meta.json); "
+                                          "it is not ours to delete: move it away and run again")
+                tmp = image_dir.with_name(image_dir.name + ".collecting")
+                if tmp.exists():  # our own interrupted collection (the lock says no run is at it now)
+                    shutil.rmtree(tmp)
+                log(f"collecting {preset.num_images} task-camera images ({preset.resolution} px) -> {image_dir}")
+                collect_images(CollectConfig(task=task, num_images=preset.num_images, resolution=preset.resolution,
+                                             num_envs=num_envs, seed=preset.seed, device=device),
+                               tmp, progress=progress, log=log)
+                tmp.rename(image_dir)
         vae_dir = default_vae_dir(cache_dir, task, preset)
         vae_path = vae_dir / "vae.pt"
-        if not (vae_dir / "metrics.json").is_file():
-            resume = (vae_dir / "checkpoints" / "last.pt").is_file()
-            if vae_dir.exists() and not resume:  # ours, stopped inside its first epoch: start over
-                shutil.rmtree(vae_dir)
-            log(f"{'resuming' if resume else 'training'} the denoising VAE ({preset.vae_epochs} epochs) -> {vae_dir}")
-            train_vae(image_dir, vae_dir, epochs=preset.vae_epochs, batch_size=preset.vae_batch_size,
-                      kl_weight=preset.kl_weight, config=preset.vae_config(), seed=preset.seed, device=device,
-                      resume=resume,
-                      progress=progress, log=log)
+        with entry_lock(vae_dir, log=log, what=f"the {task} VAE"):
+            if not (vae_dir / "metrics.json").is_file():
+                resume = (vae_dir / "checkpoints" / "last.pt").is_file()
+                if vae_dir.exists() and not resume:  # ours, stopped inside its first epoch: start over
+                    shutil.rmtree(vae_dir)
+                log(f"{'resuming' if resume else 'training'} the denoising VAE ({preset.vae_epochs} epochs) -> {vae_dir}")
+                train_vae(image_dir, vae_dir, epochs=preset.vae_epochs, batch_size=preset.vae_batch_size,
+                          kl_weight=preset.kl_weight, config=preset.vae_config(), seed=preset.seed, device=device,
+                          resume=resume, progress=progress, log=log)
         vae, _ = load_vae(vae_path, expect={"task": task, "resolution": preset.resolution}, map_location=device)
         log(f"VAE loaded: {vae_path}")
     encoder = FrozenEncoder(vae)

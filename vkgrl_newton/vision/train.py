@@ -77,8 +77,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .._io import atomic_write, atomic_write_text
-from ..agents.checkpoint import check_meta
+from .._io import atomic_write, atomic_write_text, check_meta
 from .augment import augment
 from .dataset import ImageSet
 from .probe import linear_probe

@@ -22,8 +22,8 @@ with z_t = mu + sigma * eps (eq. 4.44) and ||.||^2 summed over all 3 R^2 pixel v
 Policy side (eq. 4.49, 5.6.1): the latent is the encoder mean mu of the clean image, with the
 encoder frozen (`FrozenEncoder`).
 
-Checkpoint (`save_vae` / `load_vae`, written by `agents.checkpoint.save_checkpoint`):
-    format      agents.checkpoint.CHECKPOINT_FORMAT
+Checkpoint (`save_vae` / `load_vae`, written by `_io.save_checkpoint`):
+    format      _io.CHECKPOINT_FORMAT
     kind        "denoising_vae"
     vae_format  VAE_FORMAT
     config      dataclasses.asdict(VAEConfig)
@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..agents.checkpoint import load_checkpoint, save_checkpoint
+from .._io import load_checkpoint, save_checkpoint
 
 __all__ = [
     "VAEConfig",

@@ -1,0 +1,72 @@
+"""Runs started together on an empty cache prepare each entry once (vkgrl_newton.cache): two real
+processes, each a 'run' (tests/cache_worker.py) whose expensive step is a logged stand-in."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+WORKER = Path(__file__).with_name("cache_worker.py")
+
+
+def _two_runs_at_once(kind: str, tmp_path: Path):
+    calls = tmp_path / "calls.log"
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
+    procs = [subprocess.Popen([sys.executable, str(WORKER), kind, str(tmp_path / "cache"), str(calls)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=240)[0] for p in procs]
+    for p, out in zip(procs, outs):
+        assert p.returncode == 0, out
+    results = [next(ln for ln in out.splitlines() if ln.startswith("RESULT")) for out in outs]
+    return calls.read_text().split(), results, outs
+
+
+def test_two_kgrl_runs_record_the_demonstrations_once(tmp_path):
+    calls, results, outs = _two_runs_at_once("prior", tmp_path)
+    assert calls == ["record"], calls
+    assert results[0] == results[1]  # same demonstrations, same tables
+    assert sum("waiting for another run" in out for out in outs) == 1, outs
+    demos = Path(results[0].split()[1])
+    assert demos.exists() and demos.with_name(demos.stem + ".kmp4d.npz").exists()
+    assert "_v" in demos.name  # keyed by the demonstrator's version
+
+
+def test_two_vision_runs_collect_and_train_once(tmp_path):
+    calls, results, outs = _two_runs_at_once("vision", tmp_path)
+    assert sorted(calls) == ["collect", "train"], calls
+    assert results[0] == results[1]
+    assert sum("waiting for another run" in out for out in outs) >= 1, outs
+
+
+def test_a_changed_demonstrator_version_names_new_cache_entries(monkeypatch, tmp_path):
+    from vkgrl_newton.agents.kgrl import demos_path_for
+    from vkgrl_newton.envs import scripted
+    from vkgrl_newton.vision.collect import default_image_dir
+    from vkgrl_newton.vision.pipeline import VISION_PRESETS, default_vae_dir
+
+    def names():
+        return (demos_path_for(tmp_path, "PegInsert", 16, 0), default_image_dir(tmp_path, "PegInsert", 64, 4096),
+                default_vae_dir(tmp_path, "PegInsert", VISION_PRESETS["quick"]))
+
+    old = names()
+    monkeypatch.setattr(scripted, "DEMONSTRATOR_VERSION", scripted.DEMONSTRATOR_VERSION + 1)
+    new = names()
+    assert all(a != b for a, b in zip(old, new)), (old, new)
+
+
+def test_a_changed_file_is_named_with_both_hashes(tmp_path):
+    from vkgrl_newton.cache import check_unchanged, file_sha256
+
+    f = tmp_path / "demos.npz"
+    f.write_bytes(b"one")
+    recorded = file_sha256(f)
+    check_unchanged(f, recorded, "demos")  # unchanged: no error
+    f.write_bytes(b"two")
+    with pytest.raises(ValueError) as exc:
+        check_unchanged(f, recorded, "demos")
+    assert recorded in str(exc.value) and file_sha256(f) in str(exc.value)
+    f.unlink()
+    with pytest.raises(FileNotFoundError):
+        check_unchanged(f, recorded, "demos")

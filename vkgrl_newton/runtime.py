@@ -1,0 +1,68 @@
+"""Where things run, chosen in one place: the default device, the torch device of a Warp
+device, and how loud Warp is. The sim, the env and every CLI use these."""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+
+import torch
+import warp as wp
+
+__all__ = ["default_device", "torch_device", "configure_warp", "add_verbose_flag", "parse_cli"]
+
+# what Warp's native init prints on a machine without a GPU; nothing a CPU run can act on
+_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+
+
+def default_device() -> str:
+    """'cuda:0' when Warp sees a CUDA device, else 'cpu'. Warp decides, not torch: the physics
+    runs in Warp, and the torch device follows from it (`torch_device`)."""
+    return "cuda:0" if wp.is_cuda_available() else "cpu"
+
+
+def torch_device(warp_device) -> torch.device:
+    """The torch device sharing memory with a Warp device ('cuda:1' -> cuda:1, 'cpu' -> cpu)."""
+    return wp.device_to_torch(wp.get_device(warp_device))
+
+
+def configure_warp(verbose: bool = False) -> None:
+    """Warp's messages off unless `verbose`: no banner, no per-module 'load ... (cached)' line, no
+    missing-driver warning on a CPU machine; warnings and errors still show. Call it before
+    Warp is first used (the CLIs do, first thing); later calls only change the log level."""
+    wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
+    if verbose or wp._src.context.runtime is not None:
+        wp.init()
+        return
+    # the native init writes the driver warning to fd 2 itself: catch it there, pass the rest on
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            caught.seek(0)
+            rest = [ln for ln in caught.read().decode(errors="replace").splitlines(True) if _NO_DRIVER not in ln]
+            if rest:
+                sys.stderr.write("".join(rest))
+
+
+def add_verbose_flag(parser) -> None:
+    """`--verbose`: Warp's own messages (banner, module loads) back on."""
+    parser.add_argument("--verbose", action="store_true", help="show Warp's messages (banner, kernel module loads)")
+
+
+def parse_cli(parser, argv=None, device: bool = False):
+    """Parse a CLI's arguments with `--verbose` added, set Warp's loudness from it, and, with
+    `device`, resolve `--device` (None: `default_device()`) and say once which device it runs on."""
+    add_verbose_flag(parser)
+    args = parser.parse_args(argv)
+    configure_warp(args.verbose)
+    if device:
+        args.device = args.device or default_device()
+        print(f"{parser.prog}: device {args.device}", file=sys.stderr)
+    return args
