@@ -38,9 +38,8 @@ import numpy as np
 import torch
 import warp as wp
 
-wp.config.quiet = True
-
 from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS
+from ..runtime import parse_cli
 from .kmp_horizon import kmp_horizon_pose, mat66f, vec6f
 from .osc import osc_torques, osc_torques_torch
 
@@ -394,15 +393,12 @@ def main(argv=None) -> int:
     p.add_argument("--json", default="runs/bench/kernels.json", help="where to write the results")
     p.add_argument("--only", nargs="+", default=None, help=f"case names, from {[c.name for c in CASES]}")
     p.add_argument("--torch-threads", type=int, default=1, help="torch CPU threads (0: torch's default)")
-    args = p.parse_args(argv)
+    args = parse_cli(p, argv)
     if args.torch_threads < 0:
         raise SystemExit(f"--torch-threads must be >= 0, got {args.torch_threads}")
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
 
-    wp.config.quiet = True
-    wp.config.log_level = wp.LOG_WARNING  # warp 1.19 ignores `quiet`: keep module-load lines out of the table
-    wp.init()
     devices = args.devices or (["cpu"] + (["cuda:0"] if wp.is_cuda_available() else []))
     cases = [c for c in CASES if args.only is None or c.name in args.only]
     if args.only and len(cases) != len(args.only):

@@ -113,3 +113,25 @@ def test_demo_save_never_overwrites(peg_demos, tmp_path):
         synthetic_demos("GearMesh", 2, seed=1).save(path)
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["demos.npz"]  # no temporary left behind
+
+
+def test_clis_keep_warp_quiet_unless_verbose(tmp_path):
+    """A CLI's own lines come first: no Warp banner, no per-module 'load ... (cached)' lines, no
+    missing-driver warning; `--verbose` brings Warp's messages back."""
+    import os
+    import subprocess
+    import sys
+
+    def run(*extra):
+        argv = [sys.executable, "-m", "vkgrl_newton.kernels.bench", "--batch", "1", "--devices", "cpu", "--warmup", "1",
+                "--repeats", "1", "--only", "kmp_horizon", "--json", str(tmp_path / f"b{len(extra)}.json"), *extra]
+        out = subprocess.run(argv, capture_output=True, text=True, timeout=300,
+                             env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})
+        assert out.returncode == 0, out.stderr
+        return out.stdout + out.stderr
+
+    quiet = run()
+    assert "kmp_horizon" in quiet
+    for noise in ("Warp 1.", "initialized", "Module ", "CUDA driver"):
+        assert noise not in quiet, quiet
+    assert "Warp 1." in run("--verbose")

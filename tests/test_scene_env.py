@@ -1,9 +1,9 @@
 """The PegInsert scene and AssemblyEnv on a shared 4-world CPU env (conftest `peg_env`).
 
-References are independent of the env's own helpers: Table 5.2 / Isaac Lab Factory reset facts
-(tasks.py values and shared/reference/isaaclab_factory_facts.md section 7), socket box poses from
-author.socket_pieces() composed in float64, quaternion algebra written here in numpy, and the TCP offset
-from the published Factory TCP (0.112071 m along the hand z).
+References are independent of the env's own helpers: Table 5.2 / Isaac Lab Factory reset ranges
+(tasks.py values and Factory's `factory_env.py` `_full_reset`), socket box poses from
+author.socket_pieces() composed in float64, quaternion algebra from scipy (tests/quat_ref.py), and the
+TCP offset from the published Factory TCP (0.112071 m along the hand z).
 
 Order matters (the env is shared and stateful): static checks first, then resets, steps, and the tests
 that corrupt a world's state last. Tests needing a freshly reset env reset it when it has stepped.
@@ -24,7 +24,7 @@ FIXED_TIP = 0.025  # hole depth: the fixed tip above the socket origin
 PEG_BELOW_TCP = 0.032392  # Factory: peg height - finger pad length
 IN_HAND_NOISE = 0.003  # Factory held_asset_pos_noise (0.003, 0, 0.003)
 POS_BOUND = 0.05  # Factory pos_action_bounds
-SUCCESS_XY, SUCCESS_Z = 0.0025, 0.001  # design.md success test (peg centred, seated)
+SUCCESS_XY, SUCCESS_Z = 0.0025, 0.001  # Factory `_get_curr_successes`: peg centred, seated to 0.04 of the hole depth
 E = 4
 
 
@@ -363,7 +363,7 @@ def _check_peg_in_hand(env):
 
 
 def test_scripted_inserter_seats_the_peg(peg_env):
-    """A short scripted episode: every world reaches the success state (design.md test, checked here
+    """A short scripted episode: every world reaches the success state (Factory's test, checked here
     in float64 from the body poses), the peg ends centred and seated, contact forces stay moderate."""
     from vkgrl_newton.envs.scripted import ScriptedInserter
 
@@ -452,7 +452,7 @@ def _check_only_world_1_reset(env, total, obs, rew, dones, extras):
 
 
 def test_forge_held_mass_and_dead_zone_randomization(peg_env):
-    """Forge (facts 9.3): held mass nominal +- 5 g per reset with inertia scaled alike and passed to
+    """Forge (`forge_env_cfg.py`, `forge_events.py`): held mass nominal +- 5 g per reset with inertia scaled alike and passed to
     MuJoCo-Warp; the dead zone drawn again every 30 control steps (2 s), only in those worlds."""
     import newton
     import warp as wp

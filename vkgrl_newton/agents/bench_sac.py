@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from vkgrl_newton.agents.sac import SAC, make_sac_config
+from vkgrl_newton.runtime import parse_cli
 
 
 def _sync(device: torch.device) -> None:
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> dict:
                    help="torch intra-op threads (default: torch's). On a shared 2-core CPU, 1 avoids OpenMP "
                         "barriers stalling whenever another process holds a core")
     p.add_argument("--json", type=Path, default=None)
-    args = p.parse_args(argv)
+    args = parse_cli(p, argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)

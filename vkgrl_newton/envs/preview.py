@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .._io import atomic_write
+from ..runtime import parse_cli
 from ..sim.camera import TASK_CAMERAS, TaskCamera
 from ..sim.scene import GEOMETRIES, SimConfig, geometry_error
 from ..tasks import TASKS
@@ -49,7 +50,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES, help="GearMesh/NutThread part geometry")
-    args = ap.parse_args(argv)
+    args = parse_cli(ap, argv, device=True)
     if args.num_worlds < 1:
         ap.error("--num-worlds must be >= 1")
     if args.steps < 0:

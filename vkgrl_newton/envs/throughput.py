@@ -31,6 +31,7 @@ import torch
 import warp as wp
 
 from .._io import atomic_write_text
+from ..runtime import parse_cli
 from ..tasks import TASKS, get_task
 from .assembly_env import AssemblyEnv, EnvConfig
 
@@ -90,7 +91,7 @@ def main(argv=None) -> int:
     ap.add_argument("--task", default="PegInsert", choices=sorted(TASKS))
     ap.add_argument("--policy", default="zero", choices=("zero", "scripted"))
     ap.add_argument("--warmup", type=int, default=2, help="untimed env steps first")
-    args = ap.parse_args(argv)
+    args = parse_cli(ap, argv, device=True)
     if min(args.num_worlds) < 1 or args.steps < 1 or args.warmup < 0:
         ap.error("--num-worlds and --steps must be >= 1, --warmup >= 0")
     episode = get_task(args.task).episode_steps

@@ -20,6 +20,7 @@ import math
 
 import torch
 
+from ..runtime import parse_cli
 from ..tasks import get_task
 from .demos import synthetic_demos
 from .gmr import fit_gmm, gmr
@@ -69,7 +70,7 @@ def main(argv=None):
     p.add_argument("--lam", type=float, nargs="+", default=[0.1, 1.0, 6.0])
     p.add_argument("--beta", type=float, nargs="+", default=[1.0, 2.0, 3.0, 4.0, 6.0, 10.0, 30.0])
     p.add_argument("--l", type=float, nargs="+", default=[2.0, 20.0, 200.0, 1000.0])
-    args = p.parse_args(argv)
+    args = parse_cli(p, argv)
     spec = get_task(args.task)
     demos = synthetic_demos(spec.name, args.num_demos, action_dim=6, seed=args.seed)
     gmm = fit_gmm(demos.s, demos.eta, seed=args.seed)

@@ -35,6 +35,7 @@ from ..assets_usd.dimensions import (FIXED_ASSET_NOMINAL_POS, GEAR_MEDIUM_X, GEA
                                      THREAD_BOLT_TOP, THREAD_CAPSULE_RADIUS, THREAD_NUT_BOTTOM, THREAD_NUT_RADIUS,
                                      THREAD_PITCH)
 from ..rotations import euler_xyz_from_quat
+from ..runtime import parse_cli
 from .scene import GEOMETRIES, SimConfig, add_part_meshes, apply_contact_settings, make_solver_for, stage_root
 
 __all__ = ["PartsSim", "build_parts", "DriveResult", "run_drive"]
@@ -172,7 +173,7 @@ def main(argv=None) -> int:
     ap.add_argument("--geometry", choices=GEOMETRIES, default="primitives",
                     help="the parts' collision geometry (mesh: SDFs on CUDA, Newton's triangle BVH path on a CPU)")
     ap.add_argument("--device", default="cpu")
-    args = ap.parse_args(argv)
+    args = parse_cli(ap, argv, device=True)
     config = lambda nw: SimConfig(num_worlds=nw, device=args.device, geometry=args.geometry)  # noqa: E731
     if args.task == "NutThread":
         sim = build_parts("NutThread", config=config(1))

@@ -23,6 +23,7 @@ import torch
 import warp as wp
 
 from .._io import atomic_write_text
+from ..runtime import parse_cli
 from .latent import CameraLatent
 from .vae import DenoisingVAE, FrozenEncoder, VAEConfig
 
@@ -60,7 +61,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default=None)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
-    args = ap.parse_args(argv)
+    args = parse_cli(ap, argv, device=True)
     if args.json is not None and args.json.exists():
         ap.error(f"--json {args.json} exists; results are never overwritten")
     if min(args.num_worlds) < 1 or args.calls < 1:
@@ -71,7 +72,6 @@ def main(argv=None) -> int:
         except ValueError as e:
             ap.error(f"--resolution: {e}")
     torch.set_num_threads(args.threads)
-    wp.config.quiet = True
     rows = []
     for n in args.num_worlds:
         for r in args.resolution:
