@@ -629,7 +629,7 @@ class AssemblyEnv(VecEnv):
         keep = ~mask
         kept = None
         if bool(keep.any()):
-            kept = {name: rows[keep].clone() for name, rows in self._physics_rows().items()}
+            kept = {name: rows[keep] for name, rows in self._physics_rows().items()}  # boolean indexing copies
         saved = self.kp.clone(), self.kd.clone()
         kp = torch.tensor(RESET_KP, device=self.tdev)
         self.kp[:] = kp
