@@ -33,6 +33,7 @@ from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,  # noqa: E402
                                             ZeroPolicy, evaluate, write_video)
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
+from vkgrl_newton.cache import check_run_files  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.sim.scene import GEOMETRIES, SOLVERS, SimConfig, geometry_error  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
@@ -81,10 +82,8 @@ def main(argv=None) -> int:
         if args.geometry is None:
             args.geometry = meta.get("geometry", "primitives")
         if "prior" in meta and args.demos is None:  # the prior the run learned with (--demos overrides)
-            from vkgrl_newton.cache import check_unchanged
-
             try:
-                check_unchanged(meta["prior"]["demos"], meta["prior"]["demos_sha256"], "the KMP prior's demonstrations")
+                check_run_files(meta, demos=meta["prior"]["demos"])
             except (FileNotFoundError, ValueError) as e:
                 ap.error(f"--checkpoint: {e} (--demos FILE evaluates with another prior)")
             args.demos = Path(meta["prior"]["demos"])
@@ -97,10 +96,7 @@ def main(argv=None) -> int:
         from vkgrl_newton.vision.vae import FrozenEncoder, load_vae
 
         try:
-            if "vae_sha256" in vision:
-                from vkgrl_newton.cache import check_unchanged
-
-                check_unchanged(vision["vae"], vision["vae_sha256"], "the VAE")
+            check_run_files(payload["meta"], vae=vision["vae"])
             vae, _ = load_vae(vision["vae"], expect={"task": args.task})
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--checkpoint: the run's VAE: {e}")

@@ -50,6 +50,7 @@ from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_checkpoint  # noqa: E402
 from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
 from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
+from vkgrl_newton.cache import check_run_files  # noqa: E402
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
 from vkgrl_newton.runtime import add_verbose_flag, configure_warp, default_device  # noqa: E402
 from vkgrl_newton.sim.scene import GEOMETRIES, SimConfig, geometry_error  # noqa: E402
@@ -210,7 +211,7 @@ def main(argv=None) -> int:
         if "demos" not in given and "prior" in meta:
             args.demos = Path(meta["prior"]["demos"])
         try:  # a run continues from exactly what it learned from
-            _check_recorded_files(meta, args)
+            check_run_files(meta, demos=args.demos, vae=args.vae)
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--resume: {e}")
         for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every
@@ -276,18 +277,6 @@ def main(argv=None) -> int:
             ap.error(f"--resume: {e}")
     return train(args, run_dir, ckpt_path, payload)
 
-
-
-def _check_recorded_files(meta: dict, args) -> None:
-    """The files a run recorded by sha256 (its KMP prior's demonstrations, its VAE) are the ones
-    these arguments name, unchanged; ValueError naming both hashes otherwise."""
-    from vkgrl_newton.cache import check_unchanged
-
-    if "prior" in meta and args.demos is not None:
-        check_unchanged(args.demos, meta["prior"]["demos_sha256"], "the KMP prior's demonstrations")
-    vision = meta.get("vision", {})
-    if "vae_sha256" in vision and args.vae is not None:
-        check_unchanged(args.vae, vision["vae_sha256"], "the VAE")
 
 
 def _without_file_records(meta: dict) -> dict:

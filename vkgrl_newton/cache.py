@@ -18,7 +18,7 @@ from pathlib import Path
 
 from filelock import FileLock, Timeout
 
-__all__ = ["entry_lock", "lock_path", "file_sha256", "check_unchanged"]
+__all__ = ["entry_lock", "lock_path", "file_sha256", "check_unchanged", "check_run_files"]
 
 
 def lock_path(entry) -> Path:
@@ -66,3 +66,13 @@ def check_unchanged(path, recorded_sha256: str, what: str) -> None:
     if now != recorded_sha256:
         raise ValueError(f"{what} {path} has changed since the run recorded it: sha256 recorded {recorded_sha256}, "
                          f"now {now}")
+
+
+def check_run_files(meta: dict, demos=None, vae=None) -> None:
+    """The files a run's meta records by sha256 (its KMP prior's demonstrations, its VAE) are the
+    given ones, unchanged; a file not given (None) is not checked. Errors as `check_unchanged`."""
+    if "prior" in meta and demos is not None:
+        check_unchanged(demos, meta["prior"]["demos_sha256"], "the KMP prior's demonstrations")
+    vision = meta.get("vision", {})
+    if "vae_sha256" in vision and vae is not None:
+        check_unchanged(vae, vision["vae_sha256"], "the VAE")
