@@ -51,7 +51,6 @@ of the timed-out worlds' episodes, less any world that blew up on that last step
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field, replace
 
 import gymnasium as gym
@@ -66,12 +65,12 @@ import newton
 from ..assets_usd.dimensions import BOLT_TIP_HEIGHT, GEAR_BASE_HEIGHT, GEAR_HEIGHT, GEAR_HUB_RADIUS, GEAR_MEDIUM_X
 from ..assets_usd.dimensions import FIXED_ASSET_NOMINAL_POS as FIXED_ASSET_NOMINAL  # the authored fixed-asset position
 from ..assets_usd.dimensions import HOLE_DEPTH, NUT_ACROSS_FLATS, PEG_DIAMETER, THREAD_PITCH
-from ..kernels.contact_forces import contact_force_reduce, contact_force_reset, contact_force_update
+from ..kernels.contact_forces import contact_force_reset
 from ..kernels.kmp_horizon import vec6f
-from ..kernels.osc import osc_torques
 from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from_euler_xyz, quat_log, quat_mul, quat_rotate
 from ..runtime import torch_device
-from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene, make_solver
+from ..sim.physics import ActionBuffers, ControllerBuffers, ForceBuffers, PhysicsStepper
+from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene
 from ..tasks import get_task
 
 __all__ = ["EnvConfig", "AssemblyEnv", "FAMILIES", "ACTION_DIMS", "TASK_GEOMETRY"]
@@ -178,6 +177,9 @@ class EnvConfig:
     randomize_dynamics: bool | None = None  # Forge's dynamics randomization; None: on for forge
     vision_latent_dim: int = 0  # 0: no vision slot; 16 for the thesis's VAE latent
     max_tilt: float = math.radians(30.0)  # 6D only: bound on the gripper axis tilt from straight down
+    # the physics of a control step as one captured Warp graph (sim/physics.py); False: eager
+    # launches, the reference the graph is tested against (bitwise equal)
+    graph: bool = True
     sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self):
@@ -235,22 +237,7 @@ class AssemblyEnv(VecEnv):
         self.substeps = scene.config.substeps
         self.substep_dt = scene.config.substep_dt
 
-        self.solver, self.pipeline = make_solver(scene)
-        self.contacts = self.pipeline.contacts()
-        self.observables = self.solver.observables(
-            {newton.solvers.SolverBase.ObservableKind.CONTACT_F}, contacts=self.contacts
-        )
-        self.state_0, self.state_1 = self.model.state(), self.model.state()
-        self.control = self.model.control()
         E, dev, tdev = self.num_envs, self.device, self.tdev
-
-        # Newton articulation quantities, computed for the robots only
-        m = self.model
-        self.jacobian = wp.zeros((m.articulation_count, 6 * m.max_joints_per_articulation, m.max_dofs_per_articulation),
-                                 dtype=wp.float32, device=dev)
-        self.mass_matrix = wp.zeros((m.articulation_count, m.max_dofs_per_articulation, m.max_dofs_per_articulation),
-                                    dtype=wp.float32, device=dev)
-        self.joint_f_2d = self.control.joint_f.reshape((E, scene.dofs_per_world))
 
         # controller buffers (torch tensors with warp views of the same memory)
         z = lambda *shape: torch.zeros(*shape, dtype=torch.float32, device=tdev)  # noqa: E731
@@ -317,9 +304,28 @@ class AssemblyEnv(VecEnv):
         self.joint_lower = wp.to_torch(self.model.joint_limit_lower).view(E, -1)[:, :ARM_DOFS]
         self.joint_upper = wp.to_torch(self.model.joint_limit_upper).view(E, -1)[:, :ARM_DOFS]
 
-        # opt-in time split of the physics step (vkgrl_newton/envs/throughput.py): name -> seconds.
-        # None (the default) costs nothing; a dict synchronizes the device around each stage.
-        self.profile: dict[str, float] | None = None
+        # the physics of a control step (sim/physics.py), on the buffers above: eager, or one captured graph
+        self.first_cmd_pos_w, self.first_cmd_quat_w = z(E, 3), z(E, 4)  # the first command of a SAC step
+        wv = self._wp
+        self.physics = PhysicsStepper(
+            scene,
+            ControllerBuffers(
+                cmd_pos_w=wv["cmd_pos_w"], cmd_quat_w=wv["cmd_quat_w"], kp=wv["kp"], kd=wv["kd"],
+                dead_zone=wv["dead_zone"], q_null=wv["q_null"], torque_limit=wv["torque_limit"], kp_null=NULL_KP,
+                kd_null=NULL_KD, tcp_pos_w=wv["tcp_pos_w"], tcp_quat_w=wv["tcp_quat_w"],
+                tcp_twist_w=wv["tcp_twist_w"], wrench_w=wv["wrench_w"]),
+            ForceBuffers(
+                interaction_force_w=wv["interaction_force_w"], force_smoothed_w=wv["force_smoothed_w"],
+                force_norm_sum=wv["force_norm_sum"], force_peak=wv["force_peak"], force_count=wv["force_count"]),
+            ActionBuffers(
+                actions=wp.from_torch(self.actions_applied), pos_scale=_vec(self.pos_scale, wp.vec3),
+                rot_scale=_vec(self.rot_scale, wp.vec3), target_frame_pos_w=_vec(self.target_frame_pos_w, wp.vec3),
+                first_pos_w=_vec(self.first_cmd_pos_w, wp.vec3), first_quat_w=_vec(self.first_cmd_quat_w, wp.quat),
+                pos_bound=POS_ACTION_BOUND, max_tilt=cfg.max_tilt, unidirectional_yaw=self.geometry.unidirectional_yaw),
+            graph=cfg.graph,
+        )
+        self.solver, self.pipeline, self.contacts = self.physics.solver, self.physics.pipeline, self.physics.contacts
+        self.control, self.jacobian = self.physics.control, self.physics.jacobian
 
         # the held part's nominal mass and inertia (Forge randomizes the mass per reset)
         self.body_mass = wp.to_torch(self.model.body_mass)
@@ -332,6 +338,16 @@ class AssemblyEnv(VecEnv):
 
         self._set_family_gains(torch.ones(E, dtype=torch.bool, device=tdev))
         self.reset()
+
+    # the stepper swaps its two states every substep: these always name its current ones
+    state_0 = property(lambda self: self.physics.state_0,
+                       lambda self, s: setattr(self.physics, "state_0", s))
+    state_1 = property(lambda self: self.physics.state_1,
+                       lambda self, s: setattr(self.physics, "state_1", s))
+    # opt-in time split of eager physics (vkgrl_newton/envs/throughput.py): stage name -> seconds.
+    # None (the default) costs nothing; a dict runs the steps eagerly, synchronized around each stage.
+    profile = property(lambda self: self.physics.profile,
+                       lambda self, p: setattr(self.physics, "profile", p))
 
     # ------------------------------------------------------------------------------------------
     # views and kinematics
@@ -363,61 +379,6 @@ class AssemblyEnv(VecEnv):
     def held_pose(self) -> tuple[torch.Tensor, torch.Tensor]:
         held = self._state_views(self.state_0)["body_q"][self.held_idx]
         return held[:, :3], held[:, 3:]
-
-    # ------------------------------------------------------------------------------------------
-    # physics
-
-    def _tick(self, stage: str | None) -> None:
-        """Profiling: charge the time since the last tick to `stage` (no-op unless self.profile)."""
-        if self.profile is None:
-            return
-        wp.synchronize_device(self.device)
-        now = time.perf_counter()
-        if stage is not None:
-            self.profile[stage] = self.profile.get(stage, 0.0) + now - self._tick_t
-        self._tick_t = now
-
-    def _physics_step(self, collect_forces: bool = True) -> None:
-        """One 1/120 s physics step: `substeps` x (Jacobian, mass matrix, OSC, collision, solver)."""
-        sc, m = self.scene, self.model
-        self._tick(None)
-        self._state_version += 1
-        for _ in range(self.substeps):
-            s0 = self.state_0
-            v = self._state_views(s0)
-            newton.eval_jacobian(m, s0, self.jacobian, mask=sc.robot_articulation_mask)
-            newton.eval_mass_matrix(m, s0, self.mass_matrix, J=self.jacobian, mask=sc.robot_articulation_mask)
-            osc_torques(
-                jacobian=self.jacobian, mass_matrix=self.mass_matrix, robot_articulation=sc.robot_articulation,
-                hand_link=sc.hand_link, arm_dof_start=0, body_q=s0.body_q, body_qd=s0.body_qd, body_com=m.body_com,
-                hand_body=sc.hand_body, tcp_offset_hand=sc.tcp_offset_hand, joint_q=v["joint_q_2d"],
-                joint_qd=v["joint_qd_2d"], arm_q_start=0, arm_qd_start=0, target_pos_w=self._wp["cmd_pos_w"],
-                target_quat_w=self._wp["cmd_quat_w"], kp=self._wp["kp"], kd=self._wp["kd"],
-                dead_zone=self._wp["dead_zone"], q_null=self._wp["q_null"], kp_null=NULL_KP, kd_null=NULL_KD,
-                torque_limit=self._wp["torque_limit"], tcp_pos_w=self._wp["tcp_pos_w"],
-                tcp_quat_w=self._wp["tcp_quat_w"], tcp_twist_w=self._wp["tcp_twist_w"],
-                wrench_w=self._wp["wrench_w"], joint_f=self.joint_f_2d,
-            )
-            self._tick("kinematics_osc")
-            self.pipeline.collide(s0, self.contacts)
-            self._tick("collision")
-            self.solver.step(s0, self.state_1, self.control, self.contacts, self.substep_dt,
-                             observables=self.observables)
-            self._tick("solver")
-            self.state_0, self.state_1 = self.state_1, self.state_0
-        if collect_forces:
-            contact_force_reduce(
-                contact_count=self.contacts.rigid_contact_count, contact_shape0=self.contacts.rigid_contact_shape0,
-                contact_shape1=self.contacts.rigid_contact_shape1, contact_f=self.observables.contact_f,
-                shape_group=sc.gripper_group, shape_world=m.shape_world,
-                interaction_force_w=self._wp["interaction_force_w"],
-            )
-            contact_force_update(
-                interaction_force_w=self._wp["interaction_force_w"], force_smoothed_w=self._wp["force_smoothed_w"],
-                force_norm_sum=self._wp["force_norm_sum"], force_sample_count=self._wp["force_count"],
-                force_peak=self._wp["force_peak"],
-            )
-            self._tick("contact_forces")
 
     # ------------------------------------------------------------------------------------------
     # gains and randomization
@@ -635,8 +596,7 @@ class AssemblyEnv(VecEnv):
         self.kp[:] = kp
         self.kd[:] = 2.0 * torch.sqrt(kp)
         self.kd[:, 3:] /= 10.0  # Factory's rot_deriv_scale during reset
-        for _ in range(GRIP_SETTLE_STEPS):
-            self._physics_step(collect_forces=False)
+        self.physics.settle(GRIP_SETTLE_STEPS)
         self.kp[:], self.kd[:] = saved
         if kept is not None:
             for name, rows in self._physics_rows().items():
@@ -728,23 +688,9 @@ class AssemblyEnv(VecEnv):
             raise ValueError(f"{name} contain NaN or inf")
         return actions
 
-    def _delta_targets(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Factory: target = current TCP pose moved by the smoothed action (world frame)."""
-        tcp_p, tcp_q = self.tcp_pose()
-        a = self.actions_applied
-        pos = tcp_p + a[:, :3] * self.pos_scale
-        if self.cfg.action_dim == 4:
-            rot = torch.zeros_like(pos)
-            rot[:, 2] = a[:, 3] * self.rot_scale[:, 2]
-        else:
-            rot = a[:, 3:6] * self.rot_scale
-        if self.geometry.unidirectional_yaw:  # Factory NutThread: a_yaw in [-1, 1] -> [-1, 0], clockwise only
-            rot[:, 2] = -(a[:, -1] + 1.0) * 0.5 * self.rot_scale[:, 2]
-        quat = quat_mul(quat_exp(rot), tcp_q)
-        return pos, quat
-
     def _bound_command(self, pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Keep the command within 5 cm of the target frame, gripper down (4D) or tilt-bounded (6D)."""
+        """Keep a pose command within 5 cm of the target frame, gripper down (4D) or tilt-bounded (6D):
+        the bounds the SAC path's kernel applies (kernels/delta_command.py), for `step_pose`."""
         pos = self.target_frame_pos_w + torch.clamp(pos - self.target_frame_pos_w, -POS_ACTION_BOUND, POS_ACTION_BOUND)
         roll, pitch, yaw = euler_xyz_from_quat(quat)
         if self.cfg.action_dim == 4:
@@ -754,19 +700,15 @@ class AssemblyEnv(VecEnv):
         return pos, quat
 
     def step(self, actions: torch.Tensor):
-        """SAC path: actions in [-1, 1]^D, Factory's delta-pose mapping (module docstring)."""
+        """SAC path: actions in [-1, 1]^D, Factory's delta-pose mapping (module docstring): the
+        smoothed action moves the command from the current TCP pose every physics step, inside
+        the control step's graph (kernels/delta_command.py)."""
         actions = torch.clamp(self._check_actions(actions, self.cfg.action_dim, "actions"), -1.0, 1.0)
         ema = self.ema.unsqueeze(-1)
-        self.actions_applied = ema * actions + (1.0 - ema) * self.actions_applied
-        first_cmd = None
-        for _ in range(self.scene.config.decimation):
-            pos, quat = self._bound_command(*self._delta_targets())
-            self.cmd_pos_w.copy_(pos)
-            self.cmd_quat_w.copy_(quat)
-            if first_cmd is None:
-                first_cmd = (pos.clone(), quat.clone())
-            self._physics_step()
-        return self._finish_step(*first_cmd)
+        self.actions_applied.copy_(ema * actions + (1.0 - ema) * self.actions_applied)  # in place: the kernel reads it
+        self.physics.control_step(delta_actions=True)
+        self._state_version += 1
+        return self._finish_step(self.first_cmd_pos_w, self.first_cmd_quat_w)
 
     def step_pose(self, tcp_pos_w: torch.Tensor, tcp_quat_w: torch.Tensor):
         """KGRL path: an absolute TCP pose command (world frame), held for the control step."""
@@ -776,8 +718,8 @@ class AssemblyEnv(VecEnv):
         pos, quat = self._bound_command(pos, quat)
         self.cmd_pos_w.copy_(pos)
         self.cmd_quat_w.copy_(quat)
-        for _ in range(self.scene.config.decimation):
-            self._physics_step()
+        self.physics.control_step(delta_actions=False)
+        self._state_version += 1
         return self._finish_step(pos, quat)
 
     def _finish_step(self, cmd_pos: torch.Tensor, cmd_quat: torch.Tensor):
@@ -798,7 +740,7 @@ class AssemblyEnv(VecEnv):
             success = success & (tcp_yaw < self.geometry.success_tcp_yaw_max)
         self.success = success
         newly = success & (self.first_success_step < 0)
-        self.first_success_step[newly] = self.episode_length_buf[newly]
+        self.first_success_step.copy_(torch.where(newly, self.episode_length_buf, self.first_success_step))
         self.success_any |= success
 
         reward = SUCCESS_REWARD * success.float()
@@ -818,7 +760,7 @@ class AssemblyEnv(VecEnv):
         self.episode_reward += reward
 
         # blow-ups: those worlds end here and are reset with the timed-out ones
-        blown = self._blown_up()
+        blown = self._blown_up(held_p, tcp_p)
         time_out = self.episode_length_buf >= self.max_episode_length
         n_blown, n_time_out = torch.stack((blown.sum(), time_out.sum())).tolist()  # the step's one host read
         extras: dict = {"time_outs": time_out.clone(), "log": log, "physics_resets": blown}
@@ -869,15 +811,13 @@ class AssemblyEnv(VecEnv):
             "num_episodes": int(mask.sum()),
         }
 
-    def _blown_up(self) -> torch.Tensor:
+    def _blown_up(self, held_p: torch.Tensor, tcp_p: torch.Tensor) -> torch.Tensor:
         v = self._state_views(self.state_0)
         bq = v["body_q"].view(self.num_envs, -1, 7)
         bqd = v["body_qd"].view(self.num_envs, -1, 6)
         bad = ~torch.isfinite(bq).all(-1).all(-1) | ~torch.isfinite(bqd).all(-1).all(-1)
         bad |= bqd[..., :3].norm(dim=-1).amax(-1) > MAX_LIN_VEL
         bad |= bqd[..., 3:].norm(dim=-1).amax(-1) > MAX_ANG_VEL
-        held_p, _ = self.held_pose()
-        tcp_p, _ = self.tcp_pose()
         bad |= (held_p - tcp_p).norm(dim=-1) > 0.5  # the part was thrown out of the hand
         return bad
 
@@ -912,9 +852,7 @@ def _bound_tilt(quat: torch.Tensor, max_tilt: float) -> torch.Tensor:
     z = quat_rotate(quat, torch.tensor((0.0, 0.0, 1.0), device=quat.device).expand(quat.shape[0], 3))
     cos_tilt = (z * down).sum(-1).clamp(-1.0, 1.0)
     tilt = torch.acos(cos_tilt)
-    over = tilt > max_tilt
-    if not over.any():
-        return quat
+    over = tilt > max_tilt  # torch.where below, not an early return: no host read
     # rotate back about axis (z x down) by (tilt - max_tilt)
     axis = torch.cross(z, down, dim=-1)
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-9)
