@@ -424,6 +424,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                     writer.add_scalar("perf/grad_steps_per_s", (agent.num_updates - grad0) / update_time, step)
                 writer.add_scalar("perf/physics_resets", env.physics_resets_total, step)
                 writer.add_scalar("perf/ik_failures", env.ik_failures_total, step)
+                writer.add_scalar("perf/contact_overflows", env.contact_overflows_total, step)
                 status.update(success=ep["success_rate"], reward=ep["episode_reward"], force=ep["mean_contact_force"])
             bar.update(env.num_envs)
             if status:
@@ -451,7 +452,8 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                / max(time.perf_counter() - t_session, 1e-9),
                "train_env_steps_per_s": (counters["env_steps"] - env_steps0) * env.num_envs / max(env_time, 1e-9),
                "grad_steps_per_s": (agent.num_updates - grad0) / update_time if update_time > 0 else float("nan"),
-               "physics_resets": env.physics_resets_total, "ik_failures": env.ik_failures_total}
+               "physics_resets": env.physics_resets_total, "ik_failures": env.ik_failures_total,
+               "contact_overflows": env.contact_overflows_total}
     metrics: dict = {}
     if args.eval_episodes:
         metrics = evaluate(env, AgentPolicy(agent, action_path, time_obs), args.eval_episodes,

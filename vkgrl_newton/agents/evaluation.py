@@ -110,7 +110,7 @@ def evaluate(env, policy, episodes: int, progress: bool = True, video_frames: li
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    resets0, ik0 = env.physics_resets_total, env.ik_failures_total
+    resets0, ik0, overflow0 = env.physics_resets_total, env.ik_failures_total, env.contact_overflows_total
     if bool((env.episode_length_buf != 0).any()):
         env.reset()
     obs = env.get_observations()
@@ -151,6 +151,8 @@ def evaluate(env, policy, episodes: int, progress: bool = True, video_frames: li
         "physics_resets": env.physics_resets_total - resets0,
         # worlds whose reset IK did not converge (they ran their episode from the last iterate)
         "ik_failures": env.ik_failures_total - ik0,
+        # world-substeps whose contacts overflowed the solver's buffers (SimConfig.nconmax / njmax)
+        "contact_overflows": env.contact_overflows_total - overflow0,
         "per_episode": per_episode,
     }
 

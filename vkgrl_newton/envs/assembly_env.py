@@ -38,7 +38,12 @@ Episodes last the task's length (150 steps = 10 s; NutThread 225 = 15 s) and end
 only, all worlds together (Factory). A physics blow-up (NaN, runaway velocity, a part thrown
 away) in one world resets that world alone (its grasp settled like any reset's, the other worlds
 untouched by it) and is counted in `extras["log"]["/physics_resets"]`. A reset whose IK does not
-converge is counted in `extras["log"]["/ik_failures"]` and `ik_failures_total` (`_reset_worlds`).
+converge is counted in `extras["log"]["/ik_failures"]` and `ik_failures_total` (`_reset_worlds`);
+a substep whose contacts overflow the solver's buffers (SimConfig.nconmax / njmax) in
+`extras["log"]["/contact_overflows"]` and `contact_overflows_total`, with a warning the first time.
+
+The physics of a control step runs in sim/physics.py's PhysicsStepper, by default as one captured
+Warp graph (EnvConfig.graph; False: the eager launches, bitwise equal, the tests' reference).
 
 `step` and `step_pose` return (obs, rewards, dones, extras), rsl-rl's contract: dones = time-out
 or blow-up, observations already those after the auto-reset. extras: "time_outs" (E,) bool;
@@ -51,6 +56,7 @@ of the timed-out worlds' episodes, less any world that blew up on that last step
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 
 import gymnasium as gym
@@ -326,6 +332,10 @@ class AssemblyEnv(VecEnv):
         )
         self.solver, self.pipeline, self.contacts = self.physics.solver, self.physics.pipeline, self.physics.contacts
         self.control, self.jacobian = self.physics.control, self.physics.jacobian
+        # substeps per world whose contacts or constraint rows overflowed the solver's buffers
+        # (SimConfig.nconmax / njmax): counted inside the graph, read with the step's one host read
+        self.contact_overflow_substeps = wp.to_torch(self.physics.overflow_substeps)
+        self.contact_overflows_total = 0
 
         # the held part's nominal mass and inertia (Forge randomizes the mass per reset)
         self.body_mass = wp.to_torch(self.model.body_mass)
@@ -762,7 +772,13 @@ class AssemblyEnv(VecEnv):
         # blow-ups: those worlds end here and are reset with the timed-out ones
         blown = self._blown_up(held_p, tcp_p)
         time_out = self.episode_length_buf >= self.max_episode_length
-        n_blown, n_time_out = torch.stack((blown.sum(), time_out.sum())).tolist()  # the step's one host read
+        n_blown, n_time_out, n_overflow = torch.stack(  # the step's one host read
+            (blown.sum(), time_out.sum(), self.contact_overflow_substeps.sum())).tolist()
+        new_overflows = n_overflow - self.contact_overflows_total
+        if new_overflows:
+            self._warn_overflow(new_overflows)
+        self.contact_overflows_total = n_overflow
+        log["/contact_overflows"] = float(new_overflows)
         extras: dict = {"time_outs": time_out.clone(), "log": log, "physics_resets": blown}
         if n_blown or n_time_out:
             # the observation each world ended its episode in, before the auto-reset replaces it:
@@ -788,6 +804,21 @@ class AssemblyEnv(VecEnv):
         log["/ik_failures"] = float(self._ik_failures_step)
         dones = time_out | blown
         return self.get_observations(), reward, dones, extras
+
+    def _warn_overflow(self, n: int) -> None:
+        """Say (once per env) that contacts were dropped: the results are then not those of the model."""
+        if getattr(self, "_overflow_warned", False):
+            return
+        self._overflow_warned = True
+        from ..sim.scene import contact_limits
+
+        bits = int(np.bitwise_or.reduce(wp.to_torch(self.physics.overflow_bits).cpu().numpy()))
+        nconmax, njmax = contact_limits(self.cfg.task, self.scene.config)
+        warnings.warn(
+            f"{self.cfg.task}: contacts or constraint rows overflowed their buffers in {n} world-substeps "
+            f"(SolverMuJoCo.OverflowBits mask {bits:#x}); raise SimConfig.nconmax (now {nconmax}) / njmax "
+            f"(now {njmax}). Counted in extras['log']['/contact_overflows'] and contact_overflows_total.",
+            RuntimeWarning, stacklevel=3)
 
     def episode_metrics(self, mask: torch.Tensor) -> dict:
         """Thesis metrics of the finished episodes of the masked worlds (means over those worlds)."""

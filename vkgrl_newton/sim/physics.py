@@ -37,7 +37,7 @@ import newton
 from ..kernels.contact_forces import contact_force_reduce, contact_force_update
 from ..kernels.delta_command import delta_command
 from ..kernels.osc import osc_torques
-from .scene import Scene, contact_limits, make_solver
+from .scene import Scene, make_solver
 
 __all__ = ["PhysicsStepper", "ControllerBuffers", "ForceBuffers", "ActionBuffers", "PROFILE_STAGES"]
 
@@ -89,6 +89,21 @@ class ActionBuffers:
     unidirectional_yaw: bool
 
 
+@wp.kernel
+def overflow_accumulate_kernel(
+    overflow: wp.array(dtype=wp.int32),  # (E,) SolverMuJoCo's overflow bitmask of the last substep
+    overflow_substeps: wp.array(dtype=wp.int32),  # (E,) substeps with any overflow bit, accumulated
+    overflow_bits: wp.array(dtype=wp.int32),  # (E,) OR of every bit seen
+):
+    """Count a world's substeps whose contacts or constraint rows overflowed their buffers (MuJoCo-Warp's
+    nconmax / njmax, Newton's rigid_contact_max): the solver resets its bitmask every step, this keeps it."""
+    w = wp.tid()
+    bits = overflow[w]
+    if bits != 0:
+        overflow_substeps[w] = overflow_substeps[w] + 1
+        overflow_bits[w] = overflow_bits[w] | bits
+
+
 class PhysicsStepper:
     """Owns the two states, control, solver, collision pipeline, contacts and Jacobian / mass-matrix
     buffers of a scene; runs physics steps and control steps (module docstring)."""
@@ -102,8 +117,14 @@ class PhysicsStepper:
         self.graph = bool(graph)
         self.solver, self.pipeline = make_solver(scene)
         self.contacts = self.pipeline.contacts()
-        self.observables = self.solver.observables(
-            {newton.solvers.SolverBase.ObservableKind.CONTACT_F}, contacts=self.contacts)
+        kinds = {newton.solvers.SolverBase.ObservableKind.CONTACT_F}
+        overflow_kind = getattr(getattr(self.solver, "ObservableKind", None), "OVERFLOW", None)
+        if overflow_kind is not None and overflow_kind in getattr(self.solver, "SUPPORTED_OBSERVABLES", ()):
+            kinds.add(overflow_kind)  # MuJoCo-Warp reports capacity overflows per world and substep
+        self.observables = self.solver.observables(kinds, contacts=self.contacts)
+        E = scene.num_worlds
+        self.overflow_substeps = wp.zeros(E, dtype=wp.int32, device=self.device)
+        self.overflow_bits = wp.zeros(E, dtype=wp.int32, device=self.device)
         self.state_0, self.state_1 = self.model.state(), self.model.state()
         self.control = self.model.control()
         m, E = self.model, scene.num_worlds
@@ -112,7 +133,6 @@ class PhysicsStepper:
         self.mass_matrix = wp.zeros((m.articulation_count, m.max_dofs_per_articulation, m.max_dofs_per_articulation),
                                     dtype=wp.float32, device=self.device)
         self.joint_f_2d = self.control.joint_f.reshape((E, scene.dofs_per_world))
-        self.rigid_contact_max = contact_limits(scene.task, scene.config)[0] * E
         # graphs by kind ("delta", "pose", "settle"), each with the array pointers it was captured on
         self._graphs: dict[str, tuple[object, tuple]] = {}
         self.captures = 0  # how many graphs were recorded (first replay and reallocations)
@@ -152,6 +172,10 @@ class PhysicsStepper:
             self._tick("collision")
             self.solver.step(s0, self.state_1, self.control, self.contacts, self.substep_dt,
                              observables=self.observables)
+            overflow = getattr(self.observables, "overflow", None)
+            if overflow is not None:
+                wp.launch(overflow_accumulate_kernel, dim=sc.num_worlds, inputs=[overflow],
+                          outputs=[self.overflow_substeps, self.overflow_bits], device=self.device)
             self._tick("solver")
             self.state_0, self.state_1 = self.state_1, self.state_0
         if collect_forces:
@@ -248,12 +272,6 @@ class PhysicsStepper:
 
     # ------------------------------------------------------------------------------------------
     # diagnostics
-
-    def contact_overflow(self) -> int:
-        """Contacts the collision pipeline found beyond its buffer in the last collide (0 if none; a
-        host read)."""
-        n = int(self.contacts.rigid_contact_count.numpy()[0])
-        return max(0, n - self.rigid_contact_max)
 
     def _tick(self, stage: str | None) -> None:
         if self.profile is None:
