@@ -115,3 +115,23 @@ def test_contact_overflow_is_counted_and_warned(wp_cpu):
     from newton.solvers import SolverMuJoCo
 
     assert bits & int(SolverMuJoCo.OverflowBits.CONTACT_PIPELINE | SolverMuJoCo.OverflowBits.SOLVER_NCONMAX)
+
+
+def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
+    import json
+
+    from vkgrl_newton.envs import throughput
+
+    out = tmp_path / "t.json"
+    assert throughput.main(["--num-worlds", "1", "--steps", "1", "--warmup", "1", "--device", "cpu",
+                            "--json", str(out)]) == 0
+    results = json.loads(out.read_text())["results"]
+    assert [(r["task"], r["num_worlds"], r["mode"]) for r in results] == [("PegInsert", 1, "eager"),
+                                                                          ("PegInsert", 1, "graph")]
+    for r in results:
+        assert r["env_steps_per_s"] > 0 and abs(r["ms_per_env_step"] * r["env_steps_per_s"] - 1e3) < 1e-6
+    assert "split_ms_per_env_step" in results[0] and results[1]["speedup"] > 0
+    with pytest.raises(SystemExit):  # never overwritten
+        throughput.main(["--num-worlds", "1", "--steps", "1", "--json", str(out)])
+    with pytest.raises(SystemExit):
+        throughput.main(["--graph", "sometimes"])

@@ -52,6 +52,9 @@ def main(argv=None) -> int:
     ap.add_argument("--episodes", type=positive_int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    ap.add_argument("--eager-physics", action="store_true",
+                    help="launch the physics kernels one by one instead of one captured graph per control step "
+                         "(bitwise the same results, slower: the reference)")
     ap.add_argument("--solver", default="mujoco", choices=SOLVERS)
     ap.add_argument("--geometry", default=None, choices=GEOMETRIES,
                     help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes, SDFs on CUDA); "
@@ -105,7 +108,7 @@ def main(argv=None) -> int:
         ap.error(f"--{geometry_error(args.task, args.geometry)}")
     cfg = EnvConfig(task=args.task, family=args.env, action_dim=args.action_dim, num_envs=args.num_envs,
                     device=args.device, seed=args.seed, sim=SimConfig(solver=args.solver, geometry=args.geometry),
-                    vision_latent_dim=encoder.latent_dim if encoder is not None else 0)
+                    vision_latent_dim=encoder.latent_dim if encoder is not None else 0, graph=not args.eager_physics)
     env = AssemblyEnv(cfg)
     if encoder is not None:
         from vkgrl_newton.vision.latent import CameraLatent

@@ -106,6 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
                     help="demonstrations, KMP tables, image sets, VAEs")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--eager-physics", action="store_true",
+                    help="launch the physics kernels one by one instead of replaying one captured graph per control "
+                         "step (bitwise the same results, slower: the reference)")
     add_verbose_flag(ap)
     return ap
 
@@ -315,7 +318,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                              f"methods use {args.latent_dim} (thesis 5.6)")
     env = AssemblyEnv(EnvConfig(task=args.task, family=args.env, action_dim=args.action_dim, num_envs=args.num_envs,
                                 device=args.device, seed=args.seed, vision_latent_dim=args.latent_dim,
-                                sim=SimConfig(geometry=args.geometry)))
+                                sim=SimConfig(geometry=args.geometry), graph=not args.eager_physics))
     if encoder is not None:
         from vkgrl_newton.vision.latent import CameraLatent
 
