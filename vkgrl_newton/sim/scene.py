@@ -115,8 +115,14 @@ class SimConfig:
         return DECIMATION
 
 
-# (nconmax, njmax) per world when SimConfig leaves them None
-TASK_CONTACT_LIMITS = {"PegInsert": (256, 1024), "GearMesh": (256, 1024), "NutThread": (1024, 4096)}
+# (nconmax, njmax) per world when SimConfig leaves them None: 1.5x the peaks measured over one scripted
+# and one random episode of 4 worlds (`python -m vkgrl_newton.envs.contact_peaks`, docs/benchmarks.md),
+# rounded up to a multiple of 32. Contacts share one buffer across worlds (peak total / worlds);
+# constraint rows are per world. MuJoCo-Warp's cost grows with the allocation, not just the use, and
+# an overflow is counted and warned (AssemblyEnv.contact_overflows_total), never silent.
+# Peaks: PegInsert 121 contacts / 100 rows; GearMesh 223 / 466 (its old 256 overflowed now and then);
+# NutThread 418 / 313 (it had 1024 / 4096).
+TASK_CONTACT_LIMITS = {"PegInsert": (192, 160), "GearMesh": (352, 704), "NutThread": (640, 480)}
 
 
 def contact_limits(task: str, config: SimConfig) -> tuple[int, int]:
