@@ -135,3 +135,19 @@ def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
         throughput.main(["--num-worlds", "1", "--steps", "1", "--json", str(out)])
     with pytest.raises(SystemExit):
         throughput.main(["--graph", "sometimes"])
+
+
+def test_collision_once_per_physics_step(wp_cpu):
+    """SimConfig(collide_every_substep=False): one collide per physics step, its contacts used by
+    all of its substeps (the default collides before every substep)."""
+    from vkgrl_newton.sim.scene import SimConfig
+
+    with pytest.raises(ValueError, match="collide_every_substep"):
+        SimConfig(collide_every_substep="no")
+    for every, per_step in ((True, 4), (False, 1)):
+        env = _make(wp_cpu, "factory", 4, False, collide_every_substep=every)
+        calls = []
+        collide = env.physics.pipeline.collide
+        env.physics.pipeline.collide = lambda *a, **k: (calls.append(1), collide(*a, **k))
+        env.step(torch.zeros(E, 4))
+        assert len(calls) == 8 * per_step

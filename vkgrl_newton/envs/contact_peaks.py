@@ -2,8 +2,9 @@
 
     python -m vkgrl_newton.envs.contact_peaks --tasks PegInsert GearMesh NutThread --num-worlds 8 --json out.json
 
-Runs one episode per policy (the scripted demonstrator through `step_pose`, uniform random
-actions through `step`) on eager physics with generous buffers (4x the task defaults, so nothing
+Runs one episode per policy (the scripted demonstrator through `step_pose`; uniform random
+actions through `step`; "press": delta actions driving the part down into the fixed part at 70 %
+of full speed with a +-30 % wobble, the worst a learning policy does) on eager physics with generous buffers (4x the task defaults, so nothing
 overflows while measuring) and reads, after every substep, Newton's rigid contact count (all
 worlds share one buffer: the peak total / worlds is what `nconmax` per world must cover) and
 MuJoCo-Warp's constraint rows per world (`nefc`: `njmax` is per world). The reset's grip settle
@@ -27,6 +28,9 @@ from ..sim.scene import TASK_CONTACT_LIMITS, SimConfig
 from ..tasks import TASKS
 from .assembly_env import AssemblyEnv, EnvConfig
 from .scripted import ScriptedInserter
+
+
+POLICIES = ("scripted", "random", "press")
 
 
 def measure(task: str, num_worlds: int, policy: str, device=None, seed: int = 0) -> dict:
@@ -66,8 +70,12 @@ def measure(task: str, num_worlds: int, policy: str, device=None, seed: int = 0)
     for _ in range(env.max_episode_length):
         if policy == "scripted":
             _, _, _, extras = env.step_pose(*inserter.act(env))
-        else:
+        elif policy == "random":
             a = 2 * torch.rand(num_worlds, 4, device=env.tdev, generator=g) - 1
+            _, _, _, extras = env.step(a)
+        else:  # press
+            a = 0.3 * (2 * torch.rand(num_worlds, 4, device=env.tdev, generator=g) - 1)
+            a[:, 2] = -0.7
             _, _, _, extras = env.step(a)
         if "episode" in extras:
             successes = extras["episode"]["success_rate"]
@@ -78,7 +86,7 @@ def measure(task: str, num_worlds: int, policy: str, device=None, seed: int = 0)
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--tasks", nargs="+", default=sorted(TASKS), choices=sorted(TASKS))
-    ap.add_argument("--policies", nargs="+", default=["scripted", "random"], choices=["scripted", "random"])
+    ap.add_argument("--policies", nargs="+", default=list(POLICIES), choices=POLICIES)
     ap.add_argument("--num-worlds", type=int, default=8)
     ap.add_argument("--device", default=None)
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")

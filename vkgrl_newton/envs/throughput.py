@@ -39,6 +39,7 @@ import warp as wp
 from .._io import atomic_write_text
 from ..runtime import parse_cli
 from ..tasks import TASKS, get_task
+from ..sim.scene import SimConfig
 from .assembly_env import AssemblyEnv, EnvConfig
 
 STAGES = ("kinematics_osc", "collision", "solver", "contact_forces")
@@ -48,11 +49,11 @@ MODES = {"on": ("graph",), "off": ("eager",), "both": ("eager", "graph")}
 
 
 def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int = 2, task: str = "PegInsert",
-            policy: str = "zero", mode: str = "graph") -> dict:
+            policy: str = "zero", mode: str = "graph", sim: SimConfig | None = None) -> dict:
     if mode not in ("eager", "graph"):
         raise ValueError(f"mode must be 'eager' or 'graph', got {mode!r}")
     env = AssemblyEnv(EnvConfig(task=task, num_envs=num_worlds, action_dim=4, family="factory", device=device,
-                                graph=mode == "graph"))
+                                graph=mode == "graph", sim=sim or SimConfig()))
     if policy == "scripted":
         from .scripted import ScriptedInserter
 
@@ -109,6 +110,8 @@ def main(argv=None) -> int:
     ap.add_argument("--task", default="PegInsert", choices=sorted(TASKS))
     ap.add_argument("--policy", default="zero", choices=("zero", "scripted"))
     ap.add_argument("--warmup", type=int, default=2, help="untimed env steps first")
+    ap.add_argument("--collide-once-per-step", action="store_true",
+                    help="SimConfig(collide_every_substep=False): collision once per physics step")
     ap.add_argument("--graph", default="both", choices=sorted(MODES),
                     help="physics as one captured graph (on), eager launches (off), or both (default)")
     args = parse_cli(ap, argv, device=True)
@@ -128,7 +131,9 @@ def main(argv=None) -> int:
     for n in args.num_worlds:
         eager_ms = None
         for mode in MODES[args.graph]:
-            r = measure(n, args.steps, args.device, warmup=args.warmup, task=args.task, policy=args.policy, mode=mode)
+            r = measure(n, args.steps, args.device, warmup=args.warmup, task=args.task, policy=args.policy, mode=mode,
+                        sim=SimConfig(collide_every_substep=not args.collide_once_per_step))
+            r["collide_every_substep"] = not args.collide_once_per_step
             if mode == "eager":
                 eager_ms = r["ms_per_env_step"]
             elif eager_ms is not None:

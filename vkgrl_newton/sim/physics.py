@@ -7,9 +7,13 @@ step first moves the TCP command by the smoothed action (kernels/delta_command.p
 path (KGRL) the command is held.
 
 Graph mode (`graph=True`, the default of EnvConfig): a control step is recorded once with
-`wp.ScopedCapture` (Warp's CPU capture on a CPU, replayed in C++; a CUDA graph on CUDA, on the
-stream torch uses, so torch work before and after stays ordered) and replayed with
-`wp.capture_launch`. A capture holds raw pointers, so:
+`wp.ScopedCapture` (Warp's CPU capture on a CPU, replayed in C++; a CUDA graph on CUDA, on Warp's
+stream, which waits for torch's stream before each run and torch's for it after, so the torch work
+before and after stays ordered: not yet run on a GPU) and replayed with
+`wp.capture_launch`. The first unit of each kind (a control step of the SAC path, one of the pose
+path, a settle step) runs eagerly, so kernels compile and any one-time set-up of the solver or the
+pipeline happens outside the recording; recording executes nothing, the replays do. A capture
+holds raw pointers, so:
 - a graph records an even number of state swaps (decimation x substeps; a settle graph takes two
   physics steps when substeps is odd), so every replay starts from `state_0`'s buffers;
 - before each replay the stepper compares the pointers of every Warp array it launches on (states,
@@ -113,6 +117,7 @@ class PhysicsStepper:
         self.scene, self.model, self.device = scene, scene.model, scene.device
         self.substeps, self.substep_dt = scene.config.substeps, scene.config.substep_dt
         self.decimation = scene.config.decimation
+        self.collide_every_substep = scene.config.collide_every_substep
         self.controller, self.forces, self.actions = controller, forces, actions
         self.graph = bool(graph)
         self.solver, self.pipeline = make_solver(scene)
@@ -140,9 +145,14 @@ class PhysicsStepper:
         # opt-in per-stage time split of eager steps: name -> seconds (None costs nothing)
         self.profile: dict[str, float] | None = None
         self._tick_t = 0.0
-        # on CUDA Warp works on the stream torch works on: no synchronization between them is needed
-        self._stream = wp.stream_from_torch(torch.cuda.current_stream(wp.device_to_torch(self.device))) \
-            if wp.get_device(self.device).is_cuda else None
+        # CUDA: the physics runs on Warp's stream of the device (a graph cannot be captured on torch's
+        # legacy default stream); each run waits for the torch work queued before it and torch's
+        # stream waits for the run, so torch reads and writes of the shared buffers stay ordered
+        self._cuda = wp.get_device(self.device).is_cuda
+        if self._cuda:
+            self._torch_device = wp.device_to_torch(self.device)
+            self._warp_stream = wp.get_stream(self.device)
+            self._warp_stream_in_torch = wp.stream_to_torch(self._warp_stream)
 
     # ------------------------------------------------------------------------------------------
     # one physics step, eager (the reference; also what a graph records)
@@ -152,7 +162,7 @@ class PhysicsStepper:
         then (collect_forces) the contact reduction. Swaps the states once per substep."""
         sc, m, c = self.scene, self.model, self.controller
         self._tick(None)
-        for _ in range(self.substeps):
+        for k in range(self.substeps):
             s0 = self.state_0
             newton.eval_jacobian(m, s0, self.jacobian, mask=sc.robot_articulation_mask)
             newton.eval_mass_matrix(m, s0, self.mass_matrix, J=self.jacobian, mask=sc.robot_articulation_mask)
@@ -168,8 +178,9 @@ class PhysicsStepper:
                 joint_f=self.joint_f_2d,
             )
             self._tick("kinematics_osc")
-            self.pipeline.collide(s0, self.contacts)
-            self._tick("collision")
+            if k == 0 or self.collide_every_substep:
+                self.pipeline.collide(s0, self.contacts)
+                self._tick("collision")
             self.solver.step(s0, self.state_1, self.control, self.contacts, self.substep_dt,
                              observables=self.observables)
             overflow = getattr(self.observables, "overflow", None)
@@ -225,12 +236,18 @@ class PhysicsStepper:
             self.physics_step()
 
     def _run(self, kind: str, body, replays: int) -> None:
+        if not self._cuda:
+            self._run_on_stream(kind, body, replays)
+            return
+        self._warp_stream.wait_stream(wp.stream_from_torch(torch.cuda.current_stream(self._torch_device)))
+        self._run_on_stream(kind, body, replays)
+        torch.cuda.current_stream(self._torch_device).wait_stream(self._warp_stream_in_torch)
+
+    def _run_on_stream(self, kind: str, body, replays: int) -> None:
         if not self.graph or self.profile is not None:
             for _ in range(replays):
                 body()
             return
-        pointers = self._pointers()
-        entry = self._graphs.get(kind)
         if kind not in self._warm:
             # the first unit runs eagerly: kernels compile and any one-time work of the solver or the
             # pipeline (lazy allocations, first-step set-up) happens outside the recording
@@ -239,19 +256,17 @@ class PhysicsStepper:
             replays -= 1
             if replays == 0:
                 return
+        pointers = self._pointers()  # after the eager unit: it may have allocated lazily
+        entry = self._graphs.get(kind)
         if entry is None or entry[1] != pointers:
             with wp.ScopedDevice(self.device):
-                if self._stream is not None:
-                    with wp.ScopedStream(self._stream), wp.ScopedCapture(stream=self._stream) as cap:
-                        body()
-                else:
-                    with wp.ScopedCapture(device=self.device) as cap:
-                        body()
+                with wp.ScopedCapture(device=self.device) as cap:
+                    body()
             self.captures += 1
             entry = self._graphs[kind] = (cap.graph, pointers)
             # recording executes nothing (a CUDA graph and Warp's CPU capture alike): every replay follows
         for _ in range(replays):
-            wp.capture_launch(entry[0], stream=self._stream)
+            wp.capture_launch(entry[0])
 
     def _pointers(self) -> tuple:
         """The device pointers of every Warp array a step launches on, in a fixed order."""
