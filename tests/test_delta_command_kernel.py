@@ -100,3 +100,36 @@ def test_record_first_off_leaves_the_first_command(wp_cpu):
     rng = np.random.default_rng(3)
     got = _run_kernel(wp_cpu, *_inputs(rng, 8, 6), False, record_first=0)
     assert not got["p0"].any() and not got["q0"].any() and got["p"].any()
+
+
+@pytest.mark.parametrize("D", [4, 6])
+def test_delta_command_matches_the_torch_path_sign_included(wp_cpu, D):
+    """The env's torch bounds (what `step_pose` applies, and what `step` applied before the kernel),
+    in float64 from the same inputs: the same quaternion, sign included (the OSC kernel takes the
+    shortest way either way, but a flipped sign would change what a test or a log compares)."""
+    import torch
+
+    from vkgrl_newton.envs.assembly_env import _bound_tilt
+    from vkgrl_newton.rotations import euler_xyz_from_quat, quat_exp, quat_from_euler_xyz, quat_mul, quat_rotate
+
+    rng = np.random.default_rng(5 + D)
+    E = 128
+    hand_p, hand_q, a, ps, rs, target = _inputs(rng, E, D)
+    got = _run_kernel(wp_cpu, hand_p, hand_q, a, ps, rs, target, False, record_first=0)
+    t = lambda x: torch.as_tensor(x, dtype=torch.float64)  # noqa: E731
+    q_tcp = t(hand_q)
+    p = t(hand_p) + quat_rotate(q_tcp, t(TCP_OFFSET).expand(E, 3)) + t(a[:, :3]) * t(ps)
+    r = torch.zeros(E, 3, dtype=torch.float64)
+    if D == 4:
+        r[:, 2] = t(a[:, 3]) * t(rs[:, 2])
+    else:
+        r = t(a[:, 3:6]) * t(rs)
+    q = quat_mul(quat_exp(r), q_tcp)
+    p = t(target) + torch.clamp(p - t(target), -POS_BOUND, POS_BOUND)
+    if D == 4:
+        _, _, yaw = euler_xyz_from_quat(q)
+        q = quat_from_euler_xyz(torch.full_like(yaw, math.pi), torch.zeros_like(yaw), yaw)
+    else:
+        q = _bound_tilt(q, MAX_TILT)
+    np.testing.assert_allclose(got["p"], p.numpy(), rtol=0, atol=POS_TOL)
+    np.testing.assert_allclose(got["q"], q.numpy(), rtol=0, atol=QUAT_TOL)

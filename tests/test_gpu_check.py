@@ -21,7 +21,8 @@ def test_cpu_report(wp_cpu, tmp_path):
     assert all(c["wall_s"] > 0 for c in checks.values())
 
     entry = checks["graph_vs_eager"]["results"]["PegInsert"]["2"]
-    assert entry["bitwise_equal"] is True and entry["compared_steps"] == 3  # warm-up + 2 steps
+    assert entry["bitwise_equal"] is True and entry["compared_steps"] == 4  # 2 warm-up + 2 steps
+    assert entry["compared_delta_steps"] == 3  # and the SAC path's 3 delta-action steps
     assert entry["max_abs_diff"] == {"body_q": 0.0, "obs": 0.0}
     for mode in ("eager", "graph"):
         assert entry[mode]["env_steps_per_s"] > 0 and entry[mode]["ms_per_env_step"] > 0

@@ -1,8 +1,8 @@
 """The captured control step (sim/physics.py, EnvConfig.graph=True) against the eager launches
-(graph=False, the reference): two envs of the same config and seed, the same inputs, and every
-observation, reward, done, body pose and contact-force statistic bitwise equal at every step,
-across a time-out reset and a blow-up reset of one world. (Two eager envs of one seed are
-bitwise equal too: the first assertion checks that, so a difference below is the graph's.)"""
+(graph=False, the reference): two envs of the same config and seed, one eager and one captured,
+the same inputs, and every observation, reward, done, body pose and contact-force statistic
+bitwise equal at every step, across a time-out reset and a blow-up reset of one world. (Two eager
+envs of one seed are bitwise equal too, measured: so a difference here is the graph's.)"""
 
 import numpy as np
 import pytest
@@ -85,33 +85,46 @@ def test_graph_equals_eager(wp_cpu, family, action_dim, path):
 
 
 def test_reallocated_array_triggers_a_recapture(wp_cpu):
+    """The env's command buffer is replaced by a new one (the pose path writes the command there
+    before each control step): a graph still reading the old buffer would track the old command,
+    so the results equal the eager env's only if the stepper captured again."""
     import warp as wp
 
     captures = []
 
     def reallocate(i, env):
         captures.append(env.physics.captures)
-        if i == 3:  # a captured array is replaced before step 3
-            env.physics.jacobian = wp.zeros_like(env.physics.jacobian)
+        if i == 3:
+            env.cmd_pos_w = env.cmd_pos_w.clone()
+            env.physics.controller.cmd_pos_w = wp.from_torch(env.cmd_pos_w, dtype=wp.vec3)
 
     eager, graph = _make(wp_cpu, "factory", 6, False), _make(wp_cpu, "factory", 6, True)
-    ref, got = _rollout(eager, "step", steps=6), _rollout(graph, "step", steps=6, hook=reallocate)
+    ref = _rollout(eager, "step_pose", steps=6, hook=reallocate)
+    got = _rollout(graph, "step_pose", steps=6, hook=reallocate)
     # settle graph; step 0 eager (first unit), step 1 captures; step 3 captures again, then replays
-    assert captures == [1, 1, 2, 2, 3, 3] and graph.physics.captures == 3
+    assert captures[6:] == [1, 1, 2, 2, 3, 3] and graph.physics.captures == 3
     for a, b in zip(ref, got):
         assert torch.equal(a["body_q"], b["body_q"]) and torch.equal(a["obs"], b["obs"])
+    assert not torch.equal(ref[3]["body_q"], ref[2]["body_q"])  # the commands moved the arm meanwhile
 
 
 def test_contact_overflow_is_counted_and_warned(wp_cpu):
-    """Buffers too small for the grasp's contacts (> 2 per world): counted, reported, warned, never silent."""
-    with pytest.warns(RuntimeWarning, match="nconmax"):
-        env = _make(wp_cpu, "factory", 4, True, nconmax=2, njmax=8)
-        logged = [env.step(torch.zeros(E, 4))[3]["log"]["/contact_overflows"] for _ in range(3)]
-    assert logged[0] > 0  # the reset's settle overflowed: reported with the first step
-    # every world-substep with an overflow bit is counted once, whenever it happened
-    assert sum(logged) == env.contact_overflows_total
-    assert env.contact_overflows_total <= int(env.contact_overflow_substeps.sum())  # read before a reset's settle
-    bits = int(np.bitwise_or.reduce(wp_cpu.to_torch(env.physics.overflow_bits).numpy()))
+    """Buffers too small for the grasp's contacts (> 2 per world): counted, reported, warned, never
+    silent, and the same count in the graph as in the eager reference."""
+    counts = {}
+    for graph in (False, True):
+        with pytest.warns(RuntimeWarning, match="nconmax"):
+            env = _make(wp_cpu, "factory", 4, graph, nconmax=2, njmax=8)
+            logged = [env.step(torch.zeros(E, 4))[3]["log"]["/contact_overflows"] for _ in range(3)]
+        assert logged[0] > 0  # the reset's settle overflowed: reported with the first step
+        # counted per world and substep (a shared-buffer overflow flags every world), read before any
+        # reset's settle of the step, so the total only ever lags the device counters
+        assert env.contact_overflows_total <= int(env.contact_overflow_substeps.sum())
+        counts[graph] = (logged, env.contact_overflow_substeps.clone(), env.physics.overflow_bits.numpy().copy())
+    assert counts[False][0] == counts[True][0]
+    assert torch.equal(counts[False][1], counts[True][1])
+    np.testing.assert_array_equal(counts[False][2], counts[True][2])
+    bits = int(np.bitwise_or.reduce(counts[True][2]))
     from newton.solvers import SolverMuJoCo
 
     assert bits & int(SolverMuJoCo.OverflowBits.CONTACT_PIPELINE | SolverMuJoCo.OverflowBits.SOLVER_NCONMAX)
@@ -123,7 +136,7 @@ def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
     from vkgrl_newton.envs import throughput
 
     out = tmp_path / "t.json"
-    assert throughput.main(["--num-worlds", "1", "--steps", "1", "--warmup", "1", "--device", "cpu",
+    assert throughput.main(["--num-worlds", "1", "--steps", "1", "--warmup", "2", "--device", "cpu",
                             "--json", str(out)]) == 0
     results = json.loads(out.read_text())["results"]
     assert [(r["task"], r["num_worlds"], r["mode"]) for r in results] == [("PegInsert", 1, "eager"),
@@ -135,6 +148,8 @@ def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
         throughput.main(["--num-worlds", "1", "--steps", "1", "--json", str(out)])
     with pytest.raises(SystemExit):
         throughput.main(["--graph", "sometimes"])
+    with pytest.raises(SystemExit):  # the graph's recording would be timed
+        throughput.main(["--warmup", "1", "--json", str(tmp_path / "u.json")])
 
 
 def test_collision_once_per_physics_step(wp_cpu):

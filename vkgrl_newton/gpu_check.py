@@ -18,9 +18,11 @@ parts_mesh, graph_vs_eager: the bounded ones first, then the graph/eager sizes, 
 until the budget):
 1. graph_vs_eager: per task (`--tasks`) and world count (`--worlds`; CUDA 128 1024 4096, CPU 4),
    two envs (Factory, 4-D actions, seed 0), the physics eager (EnvConfig.graph=False) and as one
-   captured graph (True), driven by the scripted demonstrator through `step_pose` for one untimed
-   warm-up step and `--steps` timed steps (CUDA 20, CPU 3). `bitwise_equal`: torch.equal of
-   state_0.body_q and of obs["policy"] after every step, both modes; `max_abs_diff` of each;
+   captured graph (True), driven by the scripted demonstrator through `step_pose` for two untimed
+   warm-up steps (the first runs eagerly, the second records the graph) and `--steps` timed steps
+   (CUDA 20, CPU 3), then 3 steps of fixed delta actions through `step` (the SAC path: the
+   delta-command kernel in its own graph). `bitwise_equal`: torch.equal of state_0.body_q and of
+   obs["policy"] after every step, both modes; `max_abs_diff` of each;
    throughput of both modes (env_steps_per_s = worlds x steps / wall, ms_per_env_step; the device
    synchronized before the clock is read). From 1024 worlds on, the eager env runs only
    min(3, --steps) steps (equality over those, its throughput from those), the graph env all of
@@ -105,8 +107,9 @@ class Budget:
 
 # ----------------------------------------------------------------------------- 1. graph vs eager
 def _run_env(task: str, n: int, dev: str, graph: bool, steps: int, record: int) -> dict:
-    """One env, the scripted demonstrator for 1 warm-up + `steps` steps; body_q and obs of the first
-    `record` steps (warm-up included) kept on the device; the `steps` after the warm-up timed."""
+    """One env, the scripted demonstrator for 2 warm-up + `steps` steps through `step_pose`, then 3
+    steps of fixed delta actions through `step`; body_q and obs of the first `record` pose steps
+    (warm-up included) and of the 3 delta steps kept on the device; the `steps` after the warm-up timed."""
     from .envs.assembly_env import AssemblyEnv, EnvConfig
     from .envs.scripted import ScriptedInserter
 
@@ -124,31 +127,45 @@ def _run_env(task: str, n: int, dev: str, graph: bool, steps: int, record: int) 
             body_q.append(wp.to_torch(env.state_0.body_q).clone())
             obs_rec.append(obs["policy"].clone())
 
-    step(0)  # warm-up: the graph's capture happens here
+    step(0)  # warm-up: the first control step runs eagerly (kernels compile) ...
+    step(1)  # ... and the second records the graph (and replays it): both untimed
     wp.synchronize_device(dev)
     t0 = time.perf_counter()
-    for i in range(1, steps + 1):
+    for i in range(2, steps + 2):
         step(i)
     wp.synchronize_device(dev)
     wall = time.perf_counter() - t0
+    # then the SAC path (delta actions: the delta-command kernel inside the graph), 3 recorded steps
+    # of fixed actions: eager, captured, replayed
+    g = torch.Generator(device=env.tdev).manual_seed(7)
+    delta_body_q, delta_obs = [], []
+    for _ in range(3):
+        obs = env.step(0.5 * (2 * torch.rand(n, 4, device=env.tdev, generator=g) - 1))[0]
+        delta_body_q.append(wp.to_torch(env.state_0.body_q).clone())
+        delta_obs.append(obs["policy"].clone())
     out = {
         "timing": {"timed_steps": steps, "wall_s": wall, "ms_per_env_step": wall / steps * 1e3,
                    "env_steps_per_s": n * steps / wall, "build_s": build_s,
                    "captures": env.physics.captures, "physics_resets": env.physics_resets_total,
                    "contact_overflows": env.contact_overflows_total},
-        "body_q": body_q, "obs": obs_rec,
+        "body_q": body_q, "obs": obs_rec, "delta_body_q": delta_body_q, "delta_obs": delta_obs,
     }
     del env, inserter
     gc.collect()
     return out
 
 
-def _compare(a: dict, b: dict, k: int) -> dict:
+def _compare(a: dict, b: dict, k: int, delta: bool = True) -> dict:
+    """The first k pose steps; with `delta`, also the 3 delta-action steps after them (only when both
+    envs ran the same number of pose steps before, i.e. start the delta steps from the same state)."""
     res = {}
     first = None
     for key in ("body_q", "obs"):
         eq, diff = True, 0.0
-        for i, (x, y) in enumerate(zip(a[key][:k], b[key][:k])):
+        pairs = list(zip(a[key][:k], b[key][:k]))
+        if delta:
+            pairs += list(zip(a["delta_" + key], b["delta_" + key]))
+        for i, (x, y) in enumerate(pairs):
             if not torch.equal(x, y):
                 eq = False
                 first = i if first is None else min(first, i)
@@ -158,22 +175,23 @@ def _compare(a: dict, b: dict, k: int) -> dict:
         "bitwise_equal": res["body_q"][0] and res["obs"][0],
         "bitwise_equal_body_q": res["body_q"][0], "bitwise_equal_obs": res["obs"][0],
         "max_abs_diff": {"body_q": _num(res["body_q"][1]), "obs": _num(res["obs"][1])},
-        "compared_steps": k, "first_differing_step": first,  # 0: the warm-up step
+        "compared_steps": k, "compared_delta_steps": 3 if delta else 0,
+        "first_differing_step": first,  # 0, 1: the warm-up steps; k.. the delta-action steps
     }
 
 
 def graph_vs_eager_one(task: str, n: int, dev: str, steps: int) -> dict:
     eager_steps = steps if n < BIG_WORLDS else min(EQ_STEPS_BIG, steps)
-    k = 1 + eager_steps  # compared: the warm-up and the eager env's timed steps
+    k = 2 + eager_steps  # compared: the warm-up steps and the eager env's timed steps
     eager = _run_env(task, n, dev, graph=False, steps=eager_steps, record=k)
     graph = _run_env(task, n, dev, graph=True, steps=steps, record=k)
-    entry = _compare(eager, graph, k)
+    entry = _compare(eager, graph, k, delta=eager_steps == steps)
     entry.update(eager=eager.pop("timing"), graph=graph.pop("timing"))
     del graph
     gc.collect()
     if not entry["bitwise_equal"]:  # a graph bug, or a device that is not deterministic?
         again = _run_env(task, n, dev, graph=False, steps=eager_steps, record=k)
-        entry["eager_vs_eager_bitwise_equal"] = _compare(eager, again, k)["bitwise_equal"]
+        entry["eager_vs_eager_bitwise_equal"] = _compare(eager, again, k, delta=True)["bitwise_equal"]
         del again
     del eager
     gc.collect()
@@ -437,8 +455,8 @@ def main(argv=None) -> int:
         from .tasks import get_task
 
         shortest = min(get_task(t).episode_steps for t in args.tasks)
-        if 1 + steps >= shortest:
-            ap.error(f"--steps {steps}: 1 warm-up + {steps} steps must stay inside one episode ({shortest} "
+        if 2 + steps + 3 >= shortest:
+            ap.error(f"--steps {steps}: 2 warm-up + {steps} + 3 delta steps must stay inside one episode ({shortest} "
                      f"steps for {args.tasks}), so that no time-out reset is timed")
     start = datetime.now(timezone.utc)
     out = args.out

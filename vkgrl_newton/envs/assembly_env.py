@@ -40,7 +40,9 @@ away) in one world resets that world alone (its grasp settled like any reset's, 
 untouched by it) and is counted in `extras["log"]["/physics_resets"]`. A reset whose IK does not
 converge is counted in `extras["log"]["/ik_failures"]` and `ik_failures_total` (`_reset_worlds`);
 a substep whose contacts overflow the solver's buffers (SimConfig.nconmax / njmax) in
-`extras["log"]["/contact_overflows"]` and `contact_overflows_total`, with a warning the first time.
+`extras["log"]["/contact_overflows"]` and `contact_overflows_total`, with a warning the first time
+(counted per world and substep; the contact buffers are shared by all worlds, so their overflow
+counts once for every world).
 
 The physics of a control step runs in sim/physics.py's PhysicsStepper, by default as one captured
 Warp graph (EnvConfig.graph; False: the eager launches, bitwise equal, the tests' reference).
@@ -879,8 +881,8 @@ def _point_jacobian(j_com: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
 
 def _bound_tilt(quat: torch.Tensor, max_tilt: float) -> torch.Tensor:
     """Limit the angle between the gripper axis (local +z) and straight down (world -z)."""
-    down = torch.tensor((0.0, 0.0, -1.0), device=quat.device).expand(quat.shape[0], 3)
-    z = quat_rotate(quat, torch.tensor((0.0, 0.0, 1.0), device=quat.device).expand(quat.shape[0], 3))
+    down = torch.tensor((0.0, 0.0, -1.0), device=quat.device, dtype=quat.dtype).expand(quat.shape[0], 3)
+    z = quat_rotate(quat, torch.tensor((0.0, 0.0, 1.0), device=quat.device, dtype=quat.dtype).expand(quat.shape[0], 3))
     cos_tilt = (z * down).sum(-1).clamp(-1.0, 1.0)
     tilt = torch.acos(cos_tilt)
     over = tilt > max_tilt  # torch.where below, not an early return: no host read

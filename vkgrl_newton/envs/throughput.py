@@ -121,8 +121,9 @@ def main(argv=None) -> int:
     if args.warmup + 2 * args.steps >= episode:
         ap.error(f"--warmup + 2 x --steps = {args.warmup + 2 * args.steps} must stay inside one {args.task} episode "
                  f"({episode} steps): a time-out reset would be timed")
-    if args.warmup < 1 and "graph" in MODES[args.graph]:
-        ap.error("--warmup must be >= 1 with a graph: the first step runs eagerly and the second records the graph")
+    if args.warmup < 2 and "graph" in MODES[args.graph]:
+        ap.error("--warmup must be >= 2 with a graph: the first step runs eagerly, the second records the graph "
+                 "(neither is to be timed)")
     if args.json is not None and args.json.exists():
         ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
     rows = []

@@ -138,6 +138,9 @@ class PhysicsStepper:
         self.mass_matrix = wp.zeros((m.articulation_count, m.max_dofs_per_articulation, m.max_dofs_per_articulation),
                                     dtype=wp.float32, device=self.device)
         self.joint_f_2d = self.control.joint_f.reshape((E, scene.dofs_per_world))
+        # Newton's temporaries, allocated once (else every call allocates them inside the capture)
+        self.joint_S_s = wp.zeros(m.joint_dof_count, dtype=wp.spatial_vector, device=self.device)
+        self.body_I_s = wp.zeros(m.body_count, dtype=wp.spatial_matrix, device=self.device)
         # graphs by kind ("delta", "pose", "settle"), each with the array pointers it was captured on
         self._graphs: dict[str, tuple[object, tuple]] = {}
         self.captures = 0  # how many graphs were recorded (first replay and reallocations)
@@ -151,8 +154,6 @@ class PhysicsStepper:
         self._cuda = wp.get_device(self.device).is_cuda
         if self._cuda:
             self._torch_device = wp.device_to_torch(self.device)
-            self._warp_stream = wp.get_stream(self.device)
-            self._warp_stream_in_torch = wp.stream_to_torch(self._warp_stream)
 
     # ------------------------------------------------------------------------------------------
     # one physics step, eager (the reference; also what a graph records)
@@ -164,8 +165,9 @@ class PhysicsStepper:
         self._tick(None)
         for k in range(self.substeps):
             s0 = self.state_0
-            newton.eval_jacobian(m, s0, self.jacobian, mask=sc.robot_articulation_mask)
-            newton.eval_mass_matrix(m, s0, self.mass_matrix, J=self.jacobian, mask=sc.robot_articulation_mask)
+            newton.eval_jacobian(m, s0, self.jacobian, joint_S_s=self.joint_S_s, mask=sc.robot_articulation_mask)
+            newton.eval_mass_matrix(m, s0, self.mass_matrix, J=self.jacobian, body_I_s=self.body_I_s,
+                                    joint_S_s=self.joint_S_s, mask=sc.robot_articulation_mask)
             osc_torques(
                 jacobian=self.jacobian, mass_matrix=self.mass_matrix, robot_articulation=sc.robot_articulation,
                 hand_link=sc.hand_link, arm_dof_start=0, body_q=s0.body_q, body_qd=s0.body_qd, body_com=m.body_com,
@@ -239,9 +241,11 @@ class PhysicsStepper:
         if not self._cuda:
             self._run_on_stream(kind, body, replays)
             return
-        self._warp_stream.wait_stream(wp.stream_from_torch(torch.cuda.current_stream(self._torch_device)))
+        warp_stream = wp.get_stream(self.device)  # the current one: a caller's wp.ScopedStream is honoured
+        torch_stream = torch.cuda.current_stream(self._torch_device)
+        warp_stream.wait_stream(wp.stream_from_torch(torch_stream))
         self._run_on_stream(kind, body, replays)
-        torch.cuda.current_stream(self._torch_device).wait_stream(self._warp_stream_in_torch)
+        torch_stream.wait_stream(wp.stream_to_torch(warp_stream))
 
     def _run_on_stream(self, kind: str, body, replays: int) -> None:
         if not self.graph or self.profile is not None:
@@ -269,16 +273,40 @@ class PhysicsStepper:
             wp.capture_launch(entry[0])
 
     def _pointers(self) -> tuple:
-        """The device pointers of every Warp array a step launches on, in a fixed order."""
-        holders = (self.state_0, self.state_1, self.control, self.contacts, self.observables, self.controller,
-                   self.forces, self.actions, self.model, getattr(self.solver, "mjw_model", None),
-                   getattr(self.solver, "mjw_data", None))
-        ptrs = [self.jacobian.ptr, self.mass_matrix.ptr, self.joint_f_2d.ptr]
-        for h in holders:
-            if h is None:
-                continue
-            items = vars(h).values() if hasattr(h, "__dict__") else (getattr(h, f.name) for f in dataclasses.fields(h))
-            ptrs.extend(a.ptr for a in items if isinstance(a, wp.array))
+        """The device pointers of the Warp arrays a step launches on, in a fixed order: those held by
+        the states, control, contacts, observables, the stepper's buffers, the model, the collision
+        pipeline and the solver (MuJoCo-Warp's model and data included), walked recursively through
+        their attributes, lists and tuples (depth 4, each object once)."""
+        ptrs = []
+        seen: set[int] = set()
+
+        def walk(obj, depth: int) -> None:
+            if id(obj) in seen:
+                return
+            seen.add(id(obj))
+            if isinstance(obj, wp.array):
+                ptrs.append(obj.ptr)
+                return
+            if depth == 0 or isinstance(obj, (str, bytes, int, float, bool, torch.Tensor)) or obj is None:
+                return
+            if isinstance(obj, (list, tuple)):
+                items = obj
+            elif isinstance(obj, dict):
+                items = obj.values()
+            elif hasattr(obj, "__dict__"):
+                items = vars(obj).values()
+            elif dataclasses.is_dataclass(obj):
+                items = (getattr(obj, f.name) for f in dataclasses.fields(obj))
+            else:
+                return
+            for item in items:
+                walk(item, depth - 1)
+
+        for holder in (self.state_0, self.state_1, self.control, self.contacts, self.observables, self.controller,
+                       self.forces, self.actions, self.jacobian, self.mass_matrix, self.joint_f_2d, self.joint_S_s,
+                       self.body_I_s, self.overflow_substeps, self.overflow_bits, self.model, self.pipeline,
+                       self.solver):
+            walk(holder, 4)
         return tuple(ptrs)
 
     def invalidate(self) -> None:

@@ -125,8 +125,10 @@ class SimConfig:
 # rounded up to a multiple of 32. Contacts share one buffer across worlds (peak total / worlds);
 # constraint rows are per world. MuJoCo-Warp's cost grows with the allocation, not just the use, and
 # an overflow is counted and warned (AssemblyEnv.contact_overflows_total), never silent.
-# Peaks: PegInsert 121 contacts / 100 rows; GearMesh 223 / 466 (its old 256 overflowed now and then);
-# NutThread 418 / 313 (it had 1024 / 4096).
+# Peaks (contacts / rows per world): PegInsert 121 / 208 (the rows from the graph test's pressing
+# rollout, tests/test_physics_graph.py); GearMesh 223 / 466 (its old 256 contacts overflowed now and
+# then); NutThread 418 / 313 (it had 1024 / 4096). 4 worlds, one episode per policy: thin evidence
+# for what a learning policy may do, hence the counting.
 TASK_CONTACT_LIMITS = {"PegInsert": (192, 320), "GearMesh": (352, 704), "NutThread": (640, 480)}
 
 
