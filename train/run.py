@@ -32,11 +32,13 @@ Defaults: preset `thesis` (Table 5.3, 128 worlds) on CUDA, `quick` (16 worlds) o
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -106,6 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
                     help="demonstrations, KMP tables, image sets, VAEs")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
+                    help="step the env in a worker thread while the SAC update of the previous transitions runs "
+                         "(a one-update policy lag; default: on for a CPU device, off on CUDA, not yet measured there)")
     ap.add_argument("--eager-physics", action="store_true",
                     help="launch the physics kernels one by one instead of replaying one captured graph per control "
                          "step (bitwise the same results, slower: the reference)")
@@ -367,12 +372,37 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
 
     def checkpoint() -> None:
         save_checkpoint(ckpt_path, {"meta": meta, "counters": dict(counters), "agent": agent.state_dict(),
+                                    "pending_update": pending_update,  # overlapped loop: due, not yet run
                                     "rng": _rng_state(env), "plan": {"total_steps": args.total_steps,
                                                                      "checkpoint_every": args.checkpoint_every}})
 
     writer = SummaryWriter(str(run_dir / "tb"), purge_step=counters["transitions"] if payload else None)
     bar = tqdm(total=args.total_steps, initial=counters["transitions"], unit="tr", disable=args.no_progress,
                desc=f"{args.method} {args.task} {args.env} {args.action_dim}D")
+    # Overlapped loop (--overlap): env step k+1 runs in a worker thread while the main thread runs the
+    # update due after step k; the action of step k+1 is drawn before that update, i.e. from the
+    # policy after update k-1 (a one-update lag). The order of every draw from the agent's and the
+    # env's generators is fixed, so a seed gives the same run whatever the threads' timing.
+    overlap = (str(env.device) == "cpu") if args.overlap is None else args.overlap
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="env-step") if overlap else None
+    pending_update = bool(payload.get("pending_update", False)) if payload is not None else False
+    future = None
+
+    def timed_step(actions):
+        t = time.perf_counter()
+        result = step_fn(actions)
+        return result, time.perf_counter() - t
+
+    def run_update() -> None:
+        nonlocal update_time
+        t = time.perf_counter()
+        losses = agent.update()
+        update_time += time.perf_counter() - t
+        if counters["env_steps"] % 10 == 0:
+            for k, v in losses.items():
+                writer.add_scalar(f"train/{k}", v, counters["transitions"])
+        status["alpha"] = losses.get("alpha", float("nan"))
+
     obs = env.get_observations()
     last_ckpt = counters["transitions"] // args.checkpoint_every
     env_time = update_time = 0.0
@@ -383,10 +413,18 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     t_start = time.perf_counter()
     try:
         while counters["transitions"] < args.total_steps:
-            t0 = time.perf_counter()
             x = policy_observation(obs, time_obs)
             a = agent.explore(x)
-            next_obs, reward, dones, extras = step_fn(a)
+            if pool is not None:
+                future = pool.submit(timed_step, a)
+                if pending_update:  # the update due after the previous step, while this one runs
+                    run_update()
+                    pending_update = False
+                (next_obs, reward, dones, extras), dt = future.result()  # a worker's exception surfaces here
+                future = None
+            else:
+                (next_obs, reward, dones, extras), dt = timed_step(a)
+            env_time += dt
             x_next = policy_observation(next_obs, time_obs)
             if "final_observations" in extras:  # time-outs bootstrap from the state they ended in
                 final = policy_observation(extras["final_observations"], time_obs)
@@ -401,15 +439,10 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
             obs = next_obs
             counters["transitions"] += env.num_envs
             counters["env_steps"] += 1
-            t1 = time.perf_counter()
-            env_time += t1 - t0
-            if agent.update_due():
-                losses = agent.update()
-                update_time += time.perf_counter() - t1
-                if counters["env_steps"] % 10 == 0:
-                    for k, v in losses.items():
-                        writer.add_scalar(f"train/{k}", v, counters["transitions"])
-                status["alpha"] = losses.get("alpha", float("nan"))
+            if pool is not None:
+                pending_update = agent.update_due()  # runs during the next env step
+            elif agent.update_due():
+                run_update()
             if "episode" in extras:
                 ep = extras["episode"]
                 counters["episodes"] += 1
@@ -437,13 +470,22 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                 counters["wall_s"] += time.perf_counter() - t_start
                 t_start = time.perf_counter()
                 checkpoint()
+        if pending_update:  # the last step's update: as many gradient steps as the serial loop
+            run_update()
+            pending_update = False
     except KeyboardInterrupt:
+        if future is not None:  # let the worker finish its env step (its transition is dropped)
+            with contextlib.suppress(BaseException):
+                future.result()
         counters["wall_s"] += time.perf_counter() - t_start
         checkpoint()
         bar.close()
         writer.close()
         log(f"interrupted; checkpoint at {counters['transitions']} transitions in {ckpt_path} (--resume continues)")
         return 130
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     counters["wall_s"] += time.perf_counter() - t_start
     checkpoint()
     bar.close()
