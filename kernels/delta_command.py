@@ -28,23 +28,11 @@ from __future__ import annotations
 
 import warp as wp
 
+from .kmp_horizon import quat_exp_rotvec  # the package's one Warp exp map
+
 __all__ = ["delta_command_kernel", "delta_command"]
 
 wp.set_module_options({"enable_backward": False})
-
-_SMALL_ANGLE = wp.constant(1.0e-6)  # below it exp uses its series (as vkgrl_newton.rotations)
-
-
-@wp.func
-def _quat_exp(r: wp.vec3):
-    theta = wp.length(r)
-    scale = float(0.0)
-    if theta < _SMALL_ANGLE:
-        scale = 0.5 - theta * theta / 48.0
-    else:
-        scale = wp.sin(0.5 * theta) / theta
-    return wp.quat(r[0] * scale, r[1] * scale, r[2] * scale, wp.cos(0.5 * theta))
-
 
 @wp.kernel
 def delta_command_kernel(
@@ -77,7 +65,7 @@ def delta_command_kernel(
         r = wp.vec3(actions[e, 3] * rs[0], actions[e, 4] * rs[1], actions[e, 5] * rs[2])
     if unidirectional_yaw != 0:
         r = wp.vec3(r[0], r[1], -(actions[e, D - 1] + 1.0) * 0.5 * rs[2])
-    q = _quat_exp(r) * q_tcp
+    q = quat_exp_rotvec(r) * q_tcp
 
     c = target_frame_pos_w[e]
     d = p - c
@@ -93,7 +81,7 @@ def delta_command_kernel(
         if tilt > max_tilt:
             axis = wp.cross(axis_z, wp.vec3(0.0, 0.0, -1.0))
             n = wp.max(wp.length(axis), 1.0e-9)
-            q = _quat_exp(axis * ((tilt - max_tilt) / n)) * q
+            q = quat_exp_rotvec(axis * ((tilt - max_tilt) / n)) * q
     cmd_pos_w[e] = p
     cmd_quat_w[e] = q
     if record_first != 0:

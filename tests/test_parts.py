@@ -79,7 +79,7 @@ def test_gear_stage_parts(gear_model):
     # the medium shaft sits at Factory's offset in the base frame
     tf = m.shape_transform.numpy()
     shaft = labels.index("/gear_mesh/gear_base/shaft")
-    assert tf[shaft][0] - dims.FIXED_ASSET_NOMINAL_POS[0] == pytest.approx(MEDIUM_SHAFT_X, abs=1e-6)  # float32 x ~0.62 m: 1 ulp = 6e-8
+    assert tf[shaft][0] - dims.FIXED_ASSET_NOMINAL_POS[0] == pytest.approx(MEDIUM_SHAFT_X, abs=1e-6)  # two float32 x ~0.62 m (ulp 6e-8), one subtraction: <= 1.2e-7
 
 
 def test_nut_stage_parts(nut_model):

@@ -332,8 +332,6 @@ class AssemblyEnv(VecEnv):
                 pos_bound=POS_ACTION_BOUND, max_tilt=cfg.max_tilt, unidirectional_yaw=self.geometry.unidirectional_yaw),
             graph=cfg.graph,
         )
-        self.solver, self.pipeline, self.contacts = self.physics.solver, self.physics.pipeline, self.physics.contacts
-        self.control, self.jacobian = self.physics.control, self.physics.jacobian
         # substeps per world whose contacts or constraint rows overflowed the solver's buffers
         # (SimConfig.nconmax / njmax): counted inside the graph, read with the step's one host read
         self.contact_overflow_substeps = wp.to_torch(self.physics.overflow_substeps)
@@ -356,6 +354,12 @@ class AssemblyEnv(VecEnv):
                        lambda self, s: setattr(self.physics, "state_0", s))
     state_1 = property(lambda self: self.physics.state_1,
                        lambda self, s: setattr(self.physics, "state_1", s))
+    # the stepper's simulation objects, read through (never stale copies)
+    solver = property(lambda self: self.physics.solver)
+    pipeline = property(lambda self: self.physics.pipeline)
+    contacts = property(lambda self: self.physics.contacts)
+    control = property(lambda self: self.physics.control)
+    jacobian = property(lambda self: self.physics.jacobian)
     # opt-in time split of eager physics (vkgrl_newton/envs/throughput.py): stage name -> seconds.
     # None (the default) costs nothing; a dict runs the steps eagerly, synchronized around each stage.
     profile = property(lambda self: self.physics.profile,

@@ -23,6 +23,7 @@ import torch
 import warp as wp
 
 from .._io import atomic_write_text
+from ..cli_types import positive_int
 from ..runtime import parse_cli
 from ..sim.scene import TASK_CONTACT_LIMITS, SimConfig
 from ..tasks import TASKS
@@ -87,12 +88,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--tasks", nargs="+", default=sorted(TASKS), choices=sorted(TASKS))
     ap.add_argument("--policies", nargs="+", default=list(POLICIES), choices=POLICIES)
-    ap.add_argument("--num-worlds", type=int, default=8)
+    ap.add_argument("--num-worlds", type=positive_int, default=8)
     ap.add_argument("--device", default=None)
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
     args = parse_cli(ap, argv, device=True)
-    if args.num_worlds < 1:
-        ap.error("--num-worlds must be >= 1")
     if args.json is not None and args.json.exists():
         ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
     rows = []

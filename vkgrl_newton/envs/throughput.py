@@ -39,10 +39,11 @@ import warp as wp
 from .._io import atomic_write_text
 from ..runtime import parse_cli
 from ..tasks import TASKS, get_task
+from ..sim.physics import PROFILE_STAGES
 from ..sim.scene import SimConfig
 from .assembly_env import AssemblyEnv, EnvConfig
 
-STAGES = ("kinematics_osc", "collision", "solver", "contact_forces")
+STAGES = PROFILE_STAGES
 
 
 MODES = {"on": ("graph",), "off": ("eager",), "both": ("eager", "graph")}

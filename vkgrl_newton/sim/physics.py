@@ -142,6 +142,7 @@ class PhysicsStepper:
         self.joint_S_s = wp.zeros(m.joint_dof_count, dtype=wp.spatial_vector, device=self.device)
         self.body_I_s = wp.zeros(m.body_count, dtype=wp.spatial_matrix, device=self.device)
         # graphs by kind ("delta", "pose", "settle"), each with the array pointers it was captured on
+        # and the links that reached them (_walk)
         self._graphs: dict[str, tuple[object, tuple]] = {}
         self.captures = 0  # how many graphs were recorded (first replay and reallocations)
         self._warm: set[str] = set()  # kinds whose first unit already ran eagerly
@@ -260,54 +261,72 @@ class PhysicsStepper:
             replays -= 1
             if replays == 0:
                 return
-        pointers = self._pointers()  # after the eager unit: it may have allocated lazily
+        # after the eager unit (it may have allocated lazily). Per replay the check is cheap: the links
+        # of the last walk still hold the same objects; only if one changed is the walk redone and
+        # the arrays' pointers compared (an object replaced by another holding the same arrays keeps
+        # the graph)
         entry = self._graphs.get(kind)
-        if entry is None or entry[1] != pointers:
+        if entry is not None and not self._unchanged(entry[2]):
+            pointers, links = self._walk()
+            entry = self._graphs[kind] = (entry[0], entry[1], links) if pointers == entry[1] else None
+        if entry is None:
+            pointers, links = self._walk()
             with wp.ScopedDevice(self.device):
                 with wp.ScopedCapture(device=self.device) as cap:
                     body()
             self.captures += 1
-            entry = self._graphs[kind] = (cap.graph, pointers)
+            entry = self._graphs[kind] = (cap.graph, pointers, links)
             # recording executes nothing (a CUDA graph and Warp's CPU capture alike): every replay follows
         for _ in range(replays):
             wp.capture_launch(entry[0])
 
-    def _pointers(self) -> tuple:
+    _HOLDERS = ("state_0", "state_1", "control", "contacts", "observables", "controller", "forces", "actions",
+                "jacobian", "mass_matrix", "joint_f_2d", "joint_S_s", "body_I_s", "overflow_substeps",
+                "overflow_bits", "model", "pipeline", "solver")
+
+    def _walk(self) -> tuple[tuple, list]:
         """The device pointers of the Warp arrays a step launches on, in a fixed order: those held by
         the states, control, contacts, observables, the stepper's buffers, the model, the collision
         pipeline and the solver (MuJoCo-Warp's model and data included), walked recursively through
-        their attributes, lists and tuples (depth 4, each object once)."""
-        ptrs = []
+        their attributes, lists and dicts (depth 4, each object once); and every (container, key,
+        child) link the walk went through, for `_unchanged`."""
+        ptrs, links = [], []
         seen: set[int] = set()
 
         def walk(obj, depth: int) -> None:
-            if id(obj) in seen:
-                return
-            seen.add(id(obj))
             if isinstance(obj, wp.array):
                 ptrs.append(obj.ptr)
                 return
-            if depth == 0 or isinstance(obj, (str, bytes, int, float, bool, torch.Tensor)) or obj is None:
+            if id(obj) in seen or depth == 0 or obj is None or isinstance(obj, (str, bytes, int, float, torch.Tensor)):
                 return
+            seen.add(id(obj))
             if isinstance(obj, (list, tuple)):
-                items = obj
+                items = enumerate(obj)
             elif isinstance(obj, dict):
-                items = obj.values()
+                items = obj.items()
             elif hasattr(obj, "__dict__"):
-                items = vars(obj).values()
-            elif dataclasses.is_dataclass(obj):
-                items = (getattr(obj, f.name) for f in dataclasses.fields(obj))
+                items = vars(obj).items()
             else:
                 return
-            for item in items:
-                walk(item, depth - 1)
+            for key, child in items:
+                if isinstance(child, wp.array) or hasattr(child, "__dict__") or isinstance(child, (list, dict)):
+                    links.append((obj, key, child))
+                walk(child, depth - 1)
 
-        for holder in (self.state_0, self.state_1, self.control, self.contacts, self.observables, self.controller,
-                       self.forces, self.actions, self.jacobian, self.mass_matrix, self.joint_f_2d, self.joint_S_s,
-                       self.body_I_s, self.overflow_substeps, self.overflow_bits, self.model, self.pipeline,
-                       self.solver):
-            walk(holder, 4)
-        return tuple(ptrs)
+        for name in self._HOLDERS:
+            child = getattr(self, name)
+            links.append((self, name, child))
+            walk(child, 4)
+        return tuple(ptrs), links
+
+    @staticmethod
+    def _unchanged(links: list) -> bool:
+        """Every link still holds the very object it held (a cheap identity check; arrays never move)."""
+        for container, key, child in links:
+            now = container[key] if isinstance(container, (list, tuple, dict)) else getattr(container, key, None)
+            if now is not child:
+                return False
+        return True
 
     def invalidate(self) -> None:
         """Drop the recorded graphs (the next step captures again)."""
