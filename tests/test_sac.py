@@ -191,6 +191,50 @@ def test_critic_ensemble_equals_separate_critics():
     assert not torch.allclose(got[0], got[1])  # the critics are initialized independently
 
 
+def _forward_and_grads(agent: SAC, dtype: torch.dtype) -> dict[str, torch.Tensor]:
+    """Q of both critics, the actor's outputs and every gradient a gradient step uses."""
+    g = torch.Generator().manual_seed(1)
+    obs = torch.randn(37, agent.obs_dim, generator=g).to(dtype)
+    act = (torch.rand(37, agent.action_dim, generator=g) * 2 - 1).to(dtype).requires_grad_(True)
+    q = agent.critic(obs, act)
+    (q * torch.linspace(-1, 2, q.numel()).to(dtype).view_as(q)).sum().backward()
+    out = {"q": q.detach(), "dq/da": act.grad.clone()}
+    out.update({f"critic.{i}": p.grad.clone() for i, p in enumerate(agent.critic.parameters())})
+    frozen_act = act.detach().clone().requires_grad_(True)  # the actor's loss: d/da only
+    agent.critic(obs, frozen_act, frozen=True).sum().backward()
+    out["frozen dq/da"] = frozen_act.grad
+    for i, p in enumerate(agent.critic.parameters()):  # frozen: no critic weight gradient added
+        assert torch.equal(p.grad, out[f"critic.{i}"])
+    mean, log_std = agent.actor(obs)
+    (mean.square().sum() + (log_std * 0.3).sum()).backward()
+    out.update({"mean": mean.detach(), "log_std": log_std.detach()})
+    out.update({f"actor.{i}": p.grad.clone() for i, p in enumerate(agent.actor.parameters())})
+    return out
+
+
+def test_onednn_layers_match_the_float64_torch_networks():
+    """The CPU's oneDNN layers (agents/dense.py) against float64 F.linear/baddbmm: forward and
+    every gradient (weights, biases, the shared critic input, the frozen critic's d/da)."""
+    from vkgrl_newton.agents.dense import onednn_available
+
+    if not onednn_available():
+        pytest.skip("this torch has no oneDNN linear")
+    fast = small_agent(obs_dim=5, action_dim=3, seed=3, n_critics=3)
+    assert fast.actor.matmul == fast.critic.matmul == "onednn"
+    ref = small_agent(obs_dim=5, action_dim=3, seed=3, n_critics=3, cpu_matmul="torch")
+    assert ref.actor.matmul == "torch"
+    ref.actor.double(), ref.critic.double()
+    got, want = _forward_and_grads(fast, torch.float32), _forward_and_grads(ref, torch.float64)
+    assert got.keys() == want.keys()
+    for k in want:
+        # float32 chains of <= 4 layers of <= 40-term dot products (and their transposes):
+        # rounding error <= ~4 * 40 * 2^-24 ~ 1e-5 of the magnitudes summed (observed ~1e-7)
+        scale = want[k].abs().max().item()
+        torch.testing.assert_close(got[k].double(), want[k], rtol=0, atol=1e-5 * max(scale, 1.0), msg=k)
+    with pytest.raises(ValueError, match="cpu_matmul='mkl'.*onednn.*torch"):
+        make_sac_config("quick", cpu_matmul="mkl")
+
+
 def test_polyak_update_is_tau_interpolation():
     g = torch.Generator().manual_seed(0)
     target = [torch.randn(4, 3, generator=g), torch.randn(7, generator=g)]

@@ -8,6 +8,7 @@ the same process. Three variants, timed interleaved and repeated (the median is 
 a shared CPU drifts):
   ours_thesis  Table 5.3 as configured (policy_delay 4: the actor and alpha every 4th step)
   ours_delay1  policy_delay 1: the same work per step as SB3, whose SAC has no policy delay
+  ours_delay1_mkl  the same on torch's default CPU matmul (cpu_matmul="torch": MKL), CPU only
   sb3          stable_baselines3.SAC.train(gradient_steps, batch_size), if stable-baselines3 is
                installed (an optional extra; skipped with a message otherwise)
 Not identical work: ours also normalizes observations (rsl-rl EmpiricalNormalization); SB3 here
@@ -49,9 +50,10 @@ def _random_transitions(n: int, obs_dim: int, action_dim: int, seed: int) -> dic
     }
 
 
-def make_ours(args: argparse.Namespace, data: dict[str, np.ndarray], policy_delay: int) -> Callable[[int], None]:
+def make_ours(args: argparse.Namespace, data: dict[str, np.ndarray], policy_delay: int,
+              cpu_matmul: str = "onednn") -> Callable[[int], None]:
     cfg = make_sac_config("thesis", buffer_size=args.fill, learning_starts=0, batch_size=args.batch_size,
-                          hidden_dims=tuple(args.hidden), policy_delay=policy_delay)
+                          hidden_dims=tuple(args.hidden), policy_delay=policy_delay, cpu_matmul=cpu_matmul)
     agent = SAC(args.obs_dim, args.action_dim, cfg, args.device, seed=0)
     agent.add(*(torch.from_numpy(data[k]) for k in ("obs", "action", "reward", "next_obs", "terminated")))
     return lambda steps: agent.update(steps)
@@ -113,6 +115,8 @@ def main(argv: list[str] | None = None) -> dict:
         "ours_thesis": make_ours(args, data, policy_delay=4),
         "ours_delay1": make_ours(args, data, policy_delay=1),
     }
+    if device.type == "cpu":  # the same agent on torch's own CPU matmul (MKL), as SB3 runs
+        runners["ours_delay1_mkl"] = make_ours(args, data, policy_delay=1, cpu_matmul="torch")
     sb3_note = None
     try:
         runners["sb3"] = make_sb3(args, data)
@@ -147,13 +151,13 @@ def main(argv: list[str] | None = None) -> dict:
         "torch_threads": torch.get_num_threads(),
         "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "obs_dim": args.obs_dim, "action_dim": args.action_dim, "batch_size": args.batch_size,
-        "hidden": args.hidden, "activation": "elu", "n_critics": 2, "steps_per_call": args.steps,
+        "hidden": args.hidden, "activation": "elu", "n_critics": 2, "cpu_matmul": "onednn", "steps_per_call": args.steps,
         "repeats": args.repeats, "results": results,
     }
     for name, r in results.items():
         line = r.get("note") or (f"{r['grad_steps_per_s_median']:8.1f} grad steps/s "
                                  f"(best {r['grad_steps_per_s_best']:.1f})")
-        print(f"{name:12s} {line}")
+        print(f"{name:16s} {line}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=2))

@@ -21,6 +21,9 @@ import torch.nn.functional as F
 from rsl_rl.modules import EmpiricalNormalization
 from torch import nn
 
+from vkgrl_newton.agents.dense import (MATMUL_BACKENDS, ensemble_linear, ensemble_map, ensemble_stack, linear,
+                                      resolve_backend)
+
 Tensor = torch.Tensor
 ACTIVATIONS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh}
 WARMUPS = ("uniform", "policy")
@@ -60,11 +63,16 @@ class SACConfig:
     # std (pre-tanh) whatever the observation, as RSL-RL-SAC's small-sigma init: for KGRL a = 0 is
     # the prior, and std ~1 explores ~7 mm around it against a 0.06 mm clearance (docs/benchmarks.md)
     actor_init_std: float | None = None
+    # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel) or
+    # "torch" (MKL; its AVX2 path on AMD). Not a hyperparameter: float32 last bits differ.
+    cpu_matmul: str = "onednn"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_dims", tuple(int(h) for h in self.hidden_dims))
         if self.warmup not in WARMUPS:
             raise ValueError(f"SACConfig.warmup={self.warmup!r}; allowed: {list(WARMUPS)}")
+        if self.cpu_matmul not in MATMUL_BACKENDS:
+            raise ValueError(f"SACConfig.cpu_matmul={self.cpu_matmul!r}; allowed: {list(MATMUL_BACKENDS)}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"SACConfig.activation={self.activation!r}; allowed: {sorted(ACTIVATIONS)}")
         for name in ("buffer_size", "batch_size", "train_every", "gradient_steps", "n_critics", "policy_delay"):
@@ -191,6 +199,9 @@ class Actor(nn.Module):
             layers += [nn.Linear(i, o), ACTIVATIONS[cfg.activation]()]
         self.trunk = nn.Sequential(*layers)
         self.head = nn.Linear(dims[-1], 2 * action_dim)  # mean and log_std side by side
+        self.linears = [m for m in self.trunk if isinstance(m, nn.Linear)] + [self.head]
+        self.activation = ACTIVATIONS[cfg.activation]()
+        self.matmul = "torch"  # agents/dense.py backend; SAC sets it for its device
         self.log_std_bounds = (cfg.log_std_min, cfg.log_std_max)
         for m in self.modules():
             if isinstance(m, nn.Linear):
@@ -202,7 +213,11 @@ class Actor(nn.Module):
                 self.head.bias[action_dim:] = math.log(cfg.actor_init_std)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, log_std = self.head(self.trunk(obs)).chunk(2, dim=-1)
+        x, last = obs, len(self.linears) - 1
+        for i, m in enumerate(self.linears):  # the trunk's Linear/activation pairs, then the head
+            x = linear(x, m.weight, m.bias, self.matmul)
+            x = self.activation(x) if i < last else x
+        mean, log_std = x.chunk(2, dim=-1)
         return mean, log_std.clamp(*self.log_std_bounds)
 
     def sample(self, obs: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -216,7 +231,7 @@ class Actor(nn.Module):
 
 
 class CriticEnsemble(nn.Module):
-    """n_critics Q(s, a) MLPs evaluated as one batched module: weights (n, in, out), torch.baddbmm."""
+    """n_critics Q(s, a) MLPs evaluated as one batched module: weights (n, in, out), as torch.baddbmm."""
 
     def __init__(self, in_dim: int, cfg: SACConfig, generator: torch.Generator) -> None:
         super().__init__()
@@ -224,18 +239,24 @@ class CriticEnsemble(nn.Module):
         self.weights = nn.ParameterList([nn.Parameter(torch.empty(n, i, o)) for i, o in zip(dims[:-1], dims[1:])])
         self.biases = nn.ParameterList([nn.Parameter(torch.empty(n, 1, o)) for o in dims[1:]])
         self.activation = ACTIVATIONS[cfg.activation]()
+        self.matmul = "torch"  # agents/dense.py backend; SAC sets it for its device
         for w, b in zip(self.weights, self.biases):
             _init_linear_(w, b, w.shape[1], generator)
 
-    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """(B, obs_dim), (B, action_dim) -> Q values (n_critics, B)."""
-        x = torch.cat([obs, action], dim=-1)
-        x = x.unsqueeze(0).expand(self.weights[0].shape[0], -1, -1)  # a view, no copy per critic
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, frozen: bool = False) -> torch.Tensor:
+        """(B, obs_dim), (B, action_dim) -> Q values (n_critics, B).
+
+        frozen: the weights as constants (the actor's loss), so a backward pass computes the
+        gradient w.r.t. the action only, never the critics' weight gradients it would discard."""
+        weights, biases = self.weights, self.biases
+        if frozen:
+            weights, biases = [w.detach() for w in weights], [b.detach() for b in biases]
+        x = torch.cat([obs, action], dim=-1)  # (B, in): shared by the critics, never copied per critic
         last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            x = torch.baddbmm(b, x, w)
-            x = self.activation(x) if i < last else x
-        return x.squeeze(-1)
+        for i, (w, b) in enumerate(zip(weights, biases)):
+            x = ensemble_linear(x, w, b, self.matmul)
+            x = ensemble_map(self.activation, x) if i < last else x
+        return ensemble_stack(x)
 
 
 @torch.no_grad()
@@ -256,15 +277,17 @@ class SAC:
         self.generator = torch.Generator(device=self.device).manual_seed(seed)
         self.actor = Actor(obs_dim, action_dim, config, init_gen).to(self.device)
         self.critic = CriticEnsemble(obs_dim + action_dim, config, init_gen).to(self.device)
+        self.actor.matmul = self.critic.matmul = resolve_backend(config.cpu_matmul, self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self._target_params, self._online_params = list(self.critic_target.parameters()), list(self.critic.parameters())
-        self._actor_params = list(self.actor.parameters())
         self.log_alpha = torch.tensor(math.log(config.init_alpha), device=self.device, requires_grad=True)
         self.target_entropy = float(-action_dim if config.target_entropy is None else config.target_entropy)
-        adamw = dict(lr=config.lr, weight_decay=config.weight_decay)
+        # fused: one kernel per parameter tensor instead of ~10 (the for-loop update is ~10 % of a
+        # gradient step on a CPU; docs/benchmarks.md)
+        adamw = dict(lr=config.lr, weight_decay=config.weight_decay, fused=True)
         self.actor_optim = torch.optim.AdamW(self.actor.parameters(), **adamw)
         self.critic_optim = torch.optim.AdamW(self.critic.parameters(), **adamw)
-        self.alpha_optim = torch.optim.Adam([self.log_alpha], lr=config.lr)
+        self.alpha_optim = torch.optim.Adam([self.log_alpha], lr=config.lr, fused=True)
         # Statistics from env batches as they arrive (never from replay samples), applied at use.
         self.normalizer = EmpiricalNormalization(obs_dim).to(self.device) if config.obs_normalization else None
         self.buffer = ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device)
@@ -325,7 +348,7 @@ class SAC:
 
     def actor_loss(self, obs: torch.Tensor, alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         action, log_pi = self.actor.sample(obs, self.generator)
-        q = self.critic(obs, action).min(dim=0).values
+        q = self.critic(obs, action, frozen=True).min(dim=0).values
         return (alpha * log_pi - q).mean(), log_pi
 
     # --- training ------------------------------------------------------------------------------
@@ -355,7 +378,7 @@ class SAC:
             if self.num_updates % cfg.policy_delay == 0:
                 loss_pi, log_pi = self.actor_loss(obs[k], alpha)
                 self.actor_optim.zero_grad(set_to_none=True)
-                loss_pi.backward(inputs=self._actor_params)  # no critic weight grads
+                loss_pi.backward()  # actor weights only: the critic is frozen in actor_loss
                 self.actor_optim.step()
                 # d loss / d log_alpha = entropy - target: alpha falls while entropy is above target
                 log_pi = log_pi.detach()
