@@ -14,10 +14,11 @@ camera image set and the VAE trained on it, vkgrl_newton/vision/pipeline.py, per
 uses your own). A run directory holds:
 
     config.json          the arguments and the SAC configuration
+    curves.jsonl         the learning curves as a table, a row per episode (vkgrl_newton/results/curves.py)
     tb/                  tensorboard scalars (episode reward, success rate, mean contact force,
                          time to first success, losses, alpha, throughput)
-    checkpoints/last.pt  written atomically every --checkpoint-every transitions, on Ctrl-C and
-                         at the end; `--resume` continues from it
+    checkpoints/last.pt  written atomically when the run starts, every --checkpoint-every
+                         transitions, on Ctrl-C and at the end; `--resume` continues from it
     metrics.json         deterministic evaluation of the final policy (train/evaluate.py's keys)
                          and a training summary
 
@@ -54,11 +55,15 @@ from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observa
 from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.cache import check_run_files  # noqa: E402
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
+from vkgrl_newton.results.curves import CURVES_FILE, CurveWriter  # noqa: E402
 from vkgrl_newton.runtime import add_verbose_flag, configure_warp, default_device  # noqa: E402
 from vkgrl_newton.sim.scene import GEOMETRIES, SimConfig, geometry_error  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 
 METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
+# what a run writes in its directory; one holding any of them holds a run (other files, such as a
+# sweep's train.log, may sit beside them)
+RUN_FILES = ("config.json", "checkpoints", "tb", "metrics.json", CURVES_FILE)
 VISION_LATENT_DIM = 16  # d_z of the thesis's VAE (5.6)
 # per preset: worlds, total transitions, checkpoint interval (transitions)
 RUN_DEFAULTS = {
@@ -70,6 +75,8 @@ RUN_DEFAULTS = {
 # actions, and its std is capped at 0.3 (log -1.2). Uniform or std ~1 actions put the part ~7 mm
 # off the prior against a 0.06 mm clearance, and without the cap the entropy term (alpha = 1,
 # flat early Q) grows a 0.1 std to ~1 within ~100 actor updates (docs/benchmarks.md).
+CURVE_EPISODE_KEYS = ("episode_reward", "success_rate", "success_rate_any", "mean_contact_force",
+                      "peak_contact_force", "time_to_first_success_s")  # the env's episode log -> curves.jsonl
 KGRL_EXPLORATION = {"warmup": "policy", "actor_init_std": 0.1, "log_std_max": -1.2}
 METHOD_SAC_DEFAULTS: dict[str, dict] = {"kgrl": KGRL_EXPLORATION, "vision_kgrl": KGRL_EXPLORATION}
 
@@ -259,7 +266,7 @@ def main(argv=None) -> int:
     run_dir = args.run_dir or Path("runs/train") / (f"{args.task}_{args.method}_{args.env}_{args.action_dim}d_"
                                                      f"seed{args.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
     ckpt_path = run_dir / "checkpoints" / "last.pt"
-    if not args.resume and run_dir.exists() and any(run_dir.iterdir()):
+    if not args.resume and any((run_dir / name).exists() for name in RUN_FILES):
         ap.error(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another directory")
     args.latent_dim = VISION_LATENT_DIM if uses_vision(args.method) else 0
     if args.vae is not None and not uses_vision(args.method):
@@ -377,6 +384,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                                                                      "checkpoint_every": args.checkpoint_every}})
 
     writer = SummaryWriter(str(run_dir / "tb"), purge_step=counters["transitions"] if payload else None)
+    curves = CurveWriter(run_dir, resume_at=counters["transitions"] if payload else None)
     bar = tqdm(total=args.total_steps, initial=counters["transitions"], unit="tr", disable=args.no_progress,
                desc=f"{args.method} {args.task} {args.env} {args.action_dim}D")
     # Overlapped loop (--overlap): env step k+1 runs in a worker thread while the main thread runs the
@@ -408,9 +416,12 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     env_time = update_time = 0.0
     env_steps0, grad0 = counters["env_steps"], agent.num_updates
     t_session = time.perf_counter()
+    first_transition_unix = time.time()  # a sweep's overhead: scheduled -> first env step (train/sweep.py)
     status: dict[str, float] = {}
     not_terminal = torch.zeros(env.num_envs, device=env.tdev)  # the `terminated` flags, all 0
     t_start = time.perf_counter()
+    if payload is None:  # resumable from its first moment (a sweep's retry of a killed trial)
+        checkpoint()
     try:
         while counters["transitions"] < args.total_steps:
             x = policy_observation(obs, time_obs)
@@ -461,6 +472,8 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                 writer.add_scalar("perf/physics_resets", env.physics_resets_total, step)
                 writer.add_scalar("perf/ik_failures", env.ik_failures_total, step)
                 writer.add_scalar("perf/contact_overflows", env.contact_overflows_total, step)
+                curves.append(transitions=step, **{k: float(ep[k]) for k in CURVE_EPISODE_KEYS},
+                              wall_s=counters["wall_s"] + time.perf_counter() - t_start)
                 status.update(success=ep["success_rate"], reward=ep["episode_reward"], force=ep["mean_contact_force"])
             bar.update(env.num_envs)
             if status:
@@ -498,7 +511,8 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                "train_env_steps_per_s": (counters["env_steps"] - env_steps0) * env.num_envs / max(env_time, 1e-9),
                "grad_steps_per_s": (agent.num_updates - grad0) / update_time if update_time > 0 else float("nan"),
                "physics_resets": env.physics_resets_total, "ik_failures": env.ik_failures_total,
-               "contact_overflows": env.contact_overflows_total}
+               "contact_overflows": env.contact_overflows_total, "first_transition_unix": first_transition_unix,
+               "resumed": payload is not None}
     metrics: dict = {}
     if args.eval_episodes:
         metrics = evaluate(env, AgentPolicy(agent, action_path, time_obs), args.eval_episodes,

@@ -1,0 +1,164 @@
+"""train/report.py on run directories with known metrics (written here): the hand-computed means,
+stds, bold cells and dashes of Tables 6.1-6.4, the thesis's values beside ours, rliable's IQM and
+probability of improvement against brute-force computations, the curves from curves.jsonl, and
+the refusals (a mixed cell, a non-empty --out); the thesis data file against cells read by hand."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scripts import load_script
+
+from vkgrl_newton.results.curves import CurveWriter, read_curves
+from vkgrl_newton.results.thesis import load_thesis_tables
+
+NAN = math.nan
+# (action_dim, method) -> per seed (success, force, time to first success, reward)
+RUNS = {
+    (4, "sac"): [(0.2, 2.0, NAN, 10.0), (0.4, 2.0, NAN, 20.0), (0.6, 2.0, NAN, 30.0)],
+    (4, "kgrl"): [(0.5, 1.0, 4.0, 50.0), (0.7, 1.0, NAN, 60.0), (0.9, 1.0, 6.0, 70.0)],
+    (6, "sac"): [(0.0, 3.0, NAN, 0.0), (0.0, 3.0, NAN, 0.0), (0.0, 3.0, NAN, 0.0)],
+    (6, "kgrl"): [(0.3, 0.5, 5.0, 40.0), (0.3, 0.5, 5.0, 40.0), (0.3, 0.5, 5.0, 40.0)],
+}
+
+
+@pytest.fixture(scope="module")
+def report_py():
+    return load_script("report")
+
+
+def write_run(root: Path, dim: int, method: str, seed: int, values, total_steps: int = 30_000) -> Path:
+    d = root / f"PegInsert_factory_{dim}d_{method}" / f"seed{seed}"
+    d.mkdir(parents=True)
+    success, force, ttfs, reward = values
+    config = {"task": "PegInsert", "method": method, "env": "factory", "action_dim": dim, "seed": seed,
+              "num_envs": 16, "preset": "quick", "time_obs": True, "obs_dim": 8, "sac": {"batch_size": 256},
+              "total_steps": total_steps, "checkpoint_every": 4800, "device": "cpu"}
+    (d / "config.json").write_text(json.dumps(config))
+    metrics = {"success_rate": success, "mean_contact_force": force, "mean_episode_reward": reward,
+               "time_to_first_success_s": None if math.isnan(ttfs) else ttfs, "training": {}}
+    (d / "metrics.json").write_text(json.dumps(metrics))
+    curves = CurveWriter(d)
+    for i in range(1, 4):
+        curves.append(transitions=2400 * i, episode_reward=reward * i / 3, success_rate=success * i / 3,
+                      success_rate_any=success, mean_contact_force=force, peak_contact_force=10 * force,
+                      time_to_first_success_s=ttfs, wall_s=60.0 * i)
+    return d
+
+
+@pytest.fixture()
+def runs(tmp_path) -> Path:
+    root = tmp_path / "sweep"
+    for (dim, method), seeds in RUNS.items():
+        for seed, values in enumerate(seeds):
+            write_run(root, dim, method, seed, values)
+    return root
+
+
+def iqm(values) -> float:
+    """Interquartile mean: drop floor(n/4) from each end of the sorted scores."""
+    v = np.sort(np.ravel(values))
+    k = int(0.25 * len(v))
+    return float(v[k:len(v) - k].mean())
+
+
+def prob_improvement(xs: list, ys: list) -> float:
+    """P(X > Y) per configuration over all seed pairs (ties 1/2), averaged over configurations."""
+    per = [np.mean([1.0 if x > y else 0.5 if x == y else 0.0 for x in xc for y in yc]) for xc, yc in zip(xs, ys)]
+    return float(np.mean(per))
+
+
+def test_report_tables_stats_and_curves(report_py, runs, tmp_path):
+    out = tmp_path / "report"
+    assert report_py.main([str(runs), "--out", str(out), "--reps", "300"]) == 0
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    cell = {(r["metric"], int(r["action_dim"]), r["method"]): r for r in rows}
+    assert len(rows) == 4 * 4  # 4 metrics x 4 cells
+    r = cell[("success_rate", 4, "sac")]
+    assert int(r["n"]) == 3 and float(r["mean"]) == pytest.approx(0.4)
+    assert float(r["std"]) == pytest.approx(math.sqrt((0.2**2 + 0 + 0.2**2) / 3))  # ddof 0
+    r = cell[("success_rate", 4, "kgrl")]
+    assert float(r["thesis_mean"]) == 0.797 and float(r["thesis_std"]) == 0.071
+    assert float(r["difference"]) == pytest.approx(0.7 - 0.797)
+    r = cell[("time_to_first_success_s", 4, "kgrl")]  # over the seeds that succeeded
+    assert int(r["n"]) == 2 and float(r["mean"]) == pytest.approx(5.0) and float(r["std"]) == pytest.approx(1.0)
+    assert int(cell[("time_to_first_success_s", 4, "sac")]["n"]) == 0
+
+    md = (out / "tables.md").read_text()
+    table = {t.split(":")[0]: t for t in md.split("## Table ")[1:]}
+    success, force, ttfs = table["6.2"], table["6.3"], table["6.4"]
+    sac_row = next(ln for ln in success.splitlines() if ln.startswith("| PegInsert | sac"))
+    kgrl_row = next(ln for ln in success.splitlines() if ln.startswith("| PegInsert | kgrl"))
+    assert "**0.700 ± 0.163** (n=3) [0.797 ± 0.071; -0.097]" in kgrl_row  # best success: bold
+    assert "0.400 ± 0.163 (n=3) [0.535 ± 0.066; -0.135]" in sac_row and "**" not in sac_row
+    assert "**0.500 ± 0.000**" in next(ln for ln in force.splitlines() if "| kgrl" in ln)  # lowest force
+    sac_ttfs = next(ln for ln in ttfs.splitlines() if ln.startswith("| PegInsert | sac"))
+    assert sac_ttfs.split(" | ")[2] == "— (n=3) [3.606 ± 2.144; —]"  # no seed succeeded: a dash, no difference
+    tex = (out / "tables.tex").read_text()
+    assert tex.count("\\begin{tabular}") == 4 and "\\textbf{0.700 $\\pm$ 0.163}" in tex
+
+    stats = json.loads((out / "stats.json").read_text())
+    sac = [v[0] for d in (4, 6) for v in RUNS[(d, "sac")]]
+    kgrl = [v[0] for d in (4, 6) for v in RUNS[(d, "kgrl")]]
+    assert stats["iqm"]["sac"]["value"] == pytest.approx(iqm(sac))
+    assert stats["iqm"]["kgrl"]["value"] == pytest.approx(iqm(kgrl))
+    lo, hi = stats["iqm"]["kgrl"]["ci95"]
+    assert lo <= stats["iqm"]["kgrl"]["value"] <= hi
+    p = stats["probability_of_improvement"]["kgrl>sac"]
+    want = prob_improvement([[v[0] for v in RUNS[(d, "kgrl")]] for d in (4, 6)],
+                            [[v[0] for v in RUNS[(d, "sac")]] for d in (4, 6)])
+    assert p["value"] == pytest.approx(want) and want == pytest.approx((8 / 9 + 1) / 2)
+    assert "vision_kgrl>kgrl" not in stats["probability_of_improvement"]  # no vision runs
+    for name in ("stats.png", "curves_PegInsert_factory_4d.png", "curves_PegInsert_factory_6d.png"):
+        assert (out / name).stat().st_size > 10_000, name
+
+    # the report never overwrites: a non-empty --out is refused
+    with pytest.raises(SystemExit):
+        report_py.main([str(runs), "--out", str(out)])
+
+
+def test_report_refuses_a_cell_mixing_budgets(report_py, runs, tmp_path, capsys):
+    write_run(runs, 4, "sac", 7, (0.1, 1.0, NAN, 1.0), total_steps=60_000)
+    with pytest.raises(SystemExit):
+        report_py.main([str(runs), "--out", str(tmp_path / "report")])
+    err = capsys.readouterr().err
+    assert "PegInsert/factory/4/sac" in err and "total_steps (30000 vs 60000)" in err and "seed7" in err
+    with pytest.raises(SystemExit):
+        report_py.main([str(tmp_path / "nothing_here"), "--out", str(tmp_path / "r2")])
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_thesis_tables_match_cells_read_by_hand():
+    t = load_thesis_tables()
+    assert len(t) == 4 * 3 * 4 * 4  # 4 tables x 3 tasks x 4 methods x 4 columns
+    assert t[("success_rate", "GearMesh", "vision_kgrl", "factory", 4)] == (0.886, 0.022)
+    assert t[("mean_episode_reward", "NutThread", "sac", "forge", 6)] == (-0.46, 0.24)
+    assert t[("mean_contact_force", "PegInsert", "vision_sac", "forge", 6)] == (6.095, 0.248)
+    assert t[("time_to_first_success_s", "NutThread", "kgrl", "factory", 6)] == (7.935, 0.338)
+    assert all(math.isnan(v) for v in t[("time_to_first_success_s", "GearMesh", "sac", "factory", 6)])
+    dashes = [k for k, (m, _) in t.items() if math.isnan(m)]
+    assert sorted(dashes) == sorted([("time_to_first_success_s", "GearMesh", "sac", "factory", 6),
+                                     ("time_to_first_success_s", "GearMesh", "vision_sac", "factory", 6),
+                                     ("time_to_first_success_s", "NutThread", "sac", "forge", 4),
+                                     ("time_to_first_success_s", "NutThread", "sac", "forge", 6)])
+
+
+def test_curves_resume_drops_the_replayed_rows(tmp_path):
+    w = CurveWriter(tmp_path)
+    row = dict(episode_reward=1.0, success_rate=0.5, success_rate_any=0.5, mean_contact_force=1.0,
+               peak_contact_force=2.0, time_to_first_success_s=NAN, wall_s=1.0)
+    for t in (2400, 4800, 7200):
+        w.append(transitions=t, **row)
+    with open(tmp_path / "curves.jsonl", "a") as f:  # a line cut by a kill mid-write
+        f.write('{"transitions": 96')
+    assert [r["transitions"] for r in read_curves(tmp_path)] == [2400, 4800, 7200]
+    CurveWriter(tmp_path, resume_at=4800)  # the checkpoint was at 4800: 7200 and the cut line go
+    assert [r["transitions"] for r in read_curves(tmp_path)] == [2400, 4800]
+    assert math.isnan(read_curves(tmp_path)[0]["time_to_first_success_s"])
+    with pytest.raises(ValueError, match="lacks"):
+        w.append(transitions=1)

@@ -1,0 +1,172 @@
+"""train/sweep.py: a grid of tiny train/run.py trials through a local Ray. All finish; a trial
+whose process is SIGKILLed mid-run is retried and resumes from its checkpoint; a killed driver,
+started again, finishes the rest without redoing finished trials; a finished sweep starts
+nothing; bad grids and arguments are clear errors.
+
+Tiny trials: 2 worlds, 900 transitions (450 per world: 3 episodes), a 16-unit SAC; each takes
+~15 s of process start-up and ~10 s of stepping on one core."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from scripts import ROOT, load_script
+
+from vkgrl_newton.results.curves import read_curves
+
+RUN_ARGS = ["--num-envs", "2", "--total-steps", "900", "--checkpoint-every", "150", "--device", "cpu",
+            "--eval-episodes", "1", "--sac", "learning_starts=8", "--sac", "batch_size=8", "--sac", "gradient_steps=2",
+            "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000"]
+GRID = ["--tasks", "PegInsert", "--envs", "factory", "--methods", "sac"]
+
+
+@pytest.fixture(scope="module")
+def sweep_py():
+    return load_script("sweep")
+
+
+def start_driver(out: Path, *grid: str) -> subprocess.Popen:
+    env = {**os.environ, "RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
+    return subprocess.Popen([sys.executable, str(ROOT / "train" / "sweep.py"), "--out", str(out), "--no-progress",
+                             *grid, "--", *RUN_ARGS], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def wait_for(predicate, timeout: float, what: str) -> None:
+    t = time.time()
+    while not predicate():
+        if time.time() - t > timeout:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.5)
+
+
+def state(run_dir: Path) -> dict:
+    path = run_dir / "trial.json"
+    try:
+        return json.loads(path.read_text()) if path.exists() else {}
+    except json.JSONDecodeError:
+        return {}
+
+
+def checkpointed_transitions(run_dir: Path) -> int:
+    rows = read_curves(run_dir)
+    return int(rows[-1]["transitions"]) if rows else 0
+
+
+def assert_finished(run_dir: Path, resumed: bool = False) -> dict:
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["training"]["transitions"] == 900
+    steps = [r["transitions"] for r in read_curves(run_dir)]  # a row per episode of the 2 worlds
+    if resumed:  # episodes restart at the resume point: rows after it move, none is kept twice
+        assert steps[0] == 300 and all(a < b <= 900 for a, b in zip(steps, steps[1:])), steps
+    else:
+        assert steps == [300, 600, 900]
+    return metrics
+
+
+def test_grid_errors_name_the_axis_and_the_allowed_values(sweep_py, tmp_path, capsys):
+    cases = [
+        (["--grid", "quick", "--tasks", "Peg"], "tasks \\['Peg'\\] not allowed.*PegInsert"),
+        (["--grid", "quick", "--methods", "ppo"], "methods \\['ppo'\\] not allowed.*vision_kgrl"),
+        (["--grid", "quick", "--seeds", "0", "0"], "repeats a value"),
+        (GRID, "axis 'action_dims' is missing"),
+        (["--grid", "nope"], "neither a named grid \\(thesis, quick\\)"),
+        ([], "give a grid"),
+    ]
+    for argv, message in cases:
+        with pytest.raises(SystemExit):
+            sweep_py.main(["--out", str(tmp_path / "s"), *argv])
+        assert __import__("re").search(message, capsys.readouterr().err), argv
+    bad_file = tmp_path / "grid.json"
+    bad_file.write_text(json.dumps({"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [5],
+                                    "methods": ["sac"], "seeds": [0]}))
+    with pytest.raises(SystemExit):
+        sweep_py.main(["--out", str(tmp_path / "s"), "--grid", str(bad_file)])
+    assert "action_dims [5] not allowed; allowed: [4, 6]" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # the sweep names each trial's run directory and identity itself
+        sweep_py.main(["--out", str(tmp_path / "s"), "--grid", "quick", "--", "--seed", "3"])
+    assert "--seed after `--`" in capsys.readouterr().err
+    thesis = sweep_py.trials_of(sweep_py.validate_grid(sweep_py.GRIDS["thesis"]), tmp_path)
+    assert len(thesis) == 48 * 10 and len({t["run_dir"] for t in thesis}) == 480
+    assert thesis[0]["run_dir"] == str(tmp_path / "PegInsert_factory_4d_sac" / "seed0")
+
+
+def test_sweep_finishes_retries_a_killed_trial_and_restarts_nothing(sweep_py, wp_cpu, tmp_path, capsys):
+    out = tmp_path / "sweep"
+    grid = [*GRID, "--action-dims", "4", "6", "--seeds", "0", "1"]  # 2 x 2 trials, 2 at a time on 2 cores
+    victim = out / "PegInsert_factory_6d_sac" / "seed0"
+    driver = start_driver(out, *grid)
+    try:  # SIGKILL the victim's run.py once it has checkpointed part of its run
+        wait_for(lambda: state(victim).get("pid") and checkpointed_transitions(victim) >= 300, 240,
+                 "the victim trial to train")
+        os.kill(state(victim)["pid"], signal.SIGKILL)
+        log, _ = driver.communicate(timeout=420)
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+    assert driver.returncode == 0, log
+    assert "done: 4" in log, log
+    trial = state(victim)
+    assert trial["attempts"] == 2 and trial["resumed"] is True and trial["state"] == "done"
+    assert (victim / "train.log").read_text().count("=== attempt") == 2
+    assert_finished(victim, resumed=True)
+    for d in (out / "PegInsert_factory_4d_sac" / "seed0", out / "PegInsert_factory_4d_sac" / "seed1",
+              out / "PegInsert_factory_6d_sac" / "seed1"):
+        assert state(d)["attempts"] == 1
+        assert "success_rate" in assert_finished(d)
+    summary = json.loads((out / "sweep_summary.json").read_text())
+    assert summary[victim.relative_to(out).as_posix()]["attempts"] == 2
+
+    # a finished sweep starts nothing; --status says done for every trial
+    assert sweep_py.main(["--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "4 trials" in printed and "0 to run" in printed
+    assert sweep_py.main(["--out", str(out), "--status"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "seed" in ln]
+    assert len(lines) == 4 and all(ln.startswith("done") and " 900 transitions" in ln for ln in lines)
+    with pytest.raises(SystemExit):  # another grid in the same directory is refused
+        sweep_py.main(["--out", str(out), *GRID, "--action-dims", "4", "--seeds", "0"])
+    assert "holds another sweep" in capsys.readouterr().err
+
+
+def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_path):
+    out = tmp_path / "sweep"
+    grid = [*GRID, "--action-dims", "4", "--seeds", "0", "1", "--max-concurrent", "1"]
+    first, second = out / "PegInsert_factory_4d_sac" / "seed0", out / "PegInsert_factory_4d_sac" / "seed1"
+    driver = start_driver(out, *grid)
+    try:  # kill the driver once the first trial is done and the second has checkpointed some
+        wait_for(lambda: (first / "metrics.json").exists() and checkpointed_transitions(second) >= 300, 300,
+                 "one finished and one running trial")
+        os.killpg(driver.pid, signal.SIGKILL)
+        driver.wait(timeout=30)
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+    done_at = (first / "metrics.json").stat().st_mtime
+    orphan = state(second)["pid"]  # its run.py dies with the driver's Ray worker
+    wait_for(lambda: not _alive(orphan), 60, "the killed sweep's trial process to exit")
+    again = start_driver(out, *grid)
+    log, _ = again.communicate(timeout=300)
+    assert again.returncode == 0, log
+    assert "1 done, 1 to run" in log, log
+    assert (first / "metrics.json").stat().st_mtime == done_at and state(first)["attempts"] == 1
+    assert state(second)["attempts"] == 2 and state(second)["resumed"] is True
+    assert_finished(second, resumed=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped) counts as gone
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except FileNotFoundError:
+        return False

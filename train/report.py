@@ -1,0 +1,348 @@
+"""Tables 6.1-6.4, learning curves and aggregate statistics from train/run.py runs or sweeps.
+
+    python train/report.py runs/sweeps/quick --out runs/reports/quick
+    python train/report.py runs/train/PegInsert_* runs/sweeps/peg --out runs/reports/peg
+
+Reads every run directory under the given paths that holds a finished run (config.json and
+metrics.json) and groups the runs by configuration (task, env, action space, method); inside
+one configuration the runs must differ in their seed alone (budget, worlds, preset, SAC fields,
+geometry, time observation), else the report stops and names them. Writes to --out (a new or
+empty directory; nothing is overwritten):
+
+  tables.md, tables.tex  Tables 6.1-6.4 in the thesis's layout: rows task x method, columns
+                         Factory 4D / 6D, Forge 4D / 6D; mean +- std over seeds (numpy's std,
+                         ddof 0; n seeds shown); the best method per task and column in bold
+                         (higher reward and success, lower force and time); "—" where no run of
+                         the cell succeeded (time to first success) or the cell has no runs.
+                         Beside each cell, the thesis's value and ours minus the thesis's.
+  results.csv            one row per metric and cell: ours (n, mean, std), the thesis's, difference
+  stats.json, stats.png  rliable (Agarwal et al. 2021): the IQM of the final success rate over
+                         the configurations each method ran, with 95 % stratified-bootstrap
+                         intervals; the probability that kgrl beats sac and that vision_kgrl
+                         beats kgrl, over their shared configurations, with intervals
+  curves_<task>_<env>_<D>d.png  learning curves, methods overlaid, mean +- std over seeds
+                         (vkgrl_newton/results/plots.py, as train/plot_runs.py)
+
+The metrics are each run's metrics.json: the deterministic evaluation of its final policy
+(train/evaluate.py's keys). The thesis's values are Tables 6.1-6.4 of the spec as transcribed
+in vkgrl_newton/results/thesis_tables.csv. Time to first success averages the seeds that
+succeeded at all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from vkgrl_newton._io import atomic_write, atomic_write_text  # noqa: E402
+from vkgrl_newton.results.plots import plot  # noqa: E402
+from vkgrl_newton.results.thesis import METRICS, THESIS_METHOD_NAMES, load_thesis_tables  # noqa: E402
+
+TASK_ORDER = ("PegInsert", "GearMesh", "NutThread")
+METHOD_ORDER = ("kgrl", "sac", "vision_kgrl", "vision_sac")  # the thesis's row order
+COLUMNS = (("factory", 4), ("factory", 6), ("forge", 4), ("forge", 6))
+TABLE_TITLES = {"mean_episode_reward": "Final mean reward", "success_rate": "Final success rate",
+                "mean_contact_force": "Final mean contact force magnitude (N)",
+                "time_to_first_success_s": "Time to first success (s)"}
+HIGHER_IS_BETTER = {"mean_episode_reward": True, "success_rate": True, "mean_contact_force": False,
+                    "time_to_first_success_s": False}
+# what may differ between the runs of one configuration: the seed, and what does not change the
+# experiment (where it ran, how often it checkpointed, where its files are)
+NOT_IDENTITY = ("seed", "device", "checkpoint_every", "prior", "vision")
+COMPARISONS = (("kgrl", "sac"), ("vision_kgrl", "kgrl"))
+DASH = "—"
+
+
+class MixedCellError(ValueError):
+    """The runs of one configuration differ in more than the seed."""
+
+
+# ----------------------------------------------------------------------------- reading runs
+def find_runs(paths: list[Path]) -> list[Path]:
+    """Finished run directories (config.json and metrics.json) at or under the paths, sorted."""
+    found = set()
+    for p in paths:
+        p = Path(p)
+        if not p.exists():
+            raise FileNotFoundError(f"{p} does not exist")
+        candidates = [p] if (p / "metrics.json").exists() else [m.parent for m in p.rglob("metrics.json")]
+        found.update(d for d in candidates if (d / "config.json").exists())
+    return sorted(found)
+
+
+def cell_key(config: dict) -> tuple[str, str, int, str]:
+    return config["task"], config["env"], int(config["action_dim"]), config["method"]
+
+
+def identity(config: dict) -> dict:
+    return {k: v for k, v in config.items() if k not in NOT_IDENTITY}
+
+
+def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
+    """{(task, env, D, method): [{"run_dir", "seed", metric: value}]}; MixedCellError on a mixed cell."""
+    cells: dict[tuple, list[dict]] = defaultdict(list)
+    identities: dict[tuple, tuple[Path, dict]] = {}
+    for d in run_dirs:
+        config = json.loads((d / "config.json").read_text())
+        metrics = json.loads((d / "metrics.json").read_text())
+        key = cell_key(config)
+        ident = identity(config)
+        if key in identities:
+            first_dir, first = identities[key]
+            diff = sorted(k for k in set(first) | set(ident) if first.get(k) != ident.get(k))
+            if diff:
+                raise MixedCellError(
+                    f"configuration {'/'.join(map(str, key))}: {first_dir} and {d} differ in "
+                    f"{', '.join(f'{k} ({first.get(k)!r} vs {ident.get(k)!r})' for k in diff)}; "
+                    "one cell holds runs that differ in their seed alone")
+        else:
+            identities[key] = (d, ident)
+        if any(r["seed"] == config["seed"] for r in cells[key]):
+            raise MixedCellError(f"configuration {'/'.join(map(str, key))}: two runs of seed {config['seed']} "
+                                 f"({d} and another)")
+        row = {"run_dir": str(d), "seed": config["seed"]}
+        for m in METRICS:
+            v = metrics.get(m)
+            row[m] = math.nan if v is None else float(v)
+        cells[key].append(row)
+    return dict(cells)
+
+
+# ----------------------------------------------------------------------------- statistics
+def cell_stats(rows: list[dict], metric: str) -> tuple[int, float, float]:
+    """(n, mean, std) over the seeds; time to first success over the seeds that succeeded."""
+    values = np.array([r[metric] for r in rows], dtype=np.float64)
+    values = values[~np.isnan(values)]
+    if len(values) == 0:
+        return 0, math.nan, math.nan
+    return len(values), float(values.mean()), float(values.std())
+
+
+def best_methods(cells: dict, metric: str) -> set[tuple]:
+    """The cells holding the best mean of their task and column (ties all bold)."""
+    best = set()
+    for task in {k[0] for k in cells}:
+        for env, dim in COLUMNS:
+            means = {k: cell_stats(cells[k], metric)[1] for k in cells if k[:3] == (task, env, dim)}
+            means = {k: v for k, v in means.items() if not math.isnan(v)}
+            if not means:
+                continue
+            target = (max if HIGHER_IS_BETTER[metric] else min)(means.values())
+            best.update(k for k, v in means.items() if v == target)
+    return best
+
+
+def fmt(mean: float, std: float, digits: int) -> str:
+    return DASH if math.isnan(mean) else f"{mean:.{digits}f} ± {std:.{digits}f}"
+
+
+DIGITS = {"mean_episode_reward": 2, "success_rate": 3, "mean_contact_force": 3, "time_to_first_success_s": 3}
+
+
+def result_rows(cells: dict, thesis: dict) -> list[dict]:
+    rows = []
+    for metric in METRICS:
+        for key in sorted(cells, key=_order):
+            n, mean, std = cell_stats(cells[key], metric)
+            t_mean, t_std = thesis.get((metric, key[0], key[3], key[1], key[2]), (math.nan, math.nan))
+            rows.append({"table": METRICS[metric], "metric": metric, "task": key[0], "method": key[3],
+                         "env": key[1], "action_dim": key[2], "runs": len(cells[key]), "n": n, "mean": mean,
+                         "std": std, "thesis_mean": t_mean, "thesis_std": t_std, "difference": mean - t_mean})
+    return rows
+
+
+def _order(key: tuple) -> tuple:
+    task, env, dim, method = key
+    t = TASK_ORDER.index(task) if task in TASK_ORDER else len(TASK_ORDER)
+    m = METHOD_ORDER.index(method) if method in METHOD_ORDER else len(METHOD_ORDER)
+    return t, task, m, method, COLUMNS.index((env, dim))
+
+
+# ----------------------------------------------------------------------------- tables
+def markdown_tables(cells: dict, thesis: dict) -> str:
+    out = []
+    for metric, table in METRICS.items():
+        best = best_methods(cells, metric)
+        d = DIGITS[metric]
+        out += [f"## Table {table}: {TABLE_TITLES[metric]}", "",
+                "Ours: mean ± std over n seeds (**bold**: the best method of the task in that column); "
+                "in brackets the thesis's value (10 seeds) and ours minus the thesis's.", "",
+                "| Task | Method | Factory 4D | Factory 6D | Forge 4D | Forge 6D |", "|---|---|---|---|---|---|"]
+        for task, method in _rows(cells):
+            line = [task, method]
+            for env, dim in COLUMNS:
+                key = (task, env, dim, method)
+                if key not in cells:
+                    line.append("")
+                    continue
+                n, mean, std = cell_stats(cells[key], metric)
+                text = fmt(mean, std, d)
+                text = f"**{text}**" if key in best else text
+                text += f" (n={len(cells[key])})"
+                t_mean, t_std = thesis.get((metric, task, method, env, dim), (math.nan, math.nan))
+                diff = DASH if math.isnan(mean) or math.isnan(t_mean) else f"{mean - t_mean:+.{d}f}"
+                line.append(f"{text} [{fmt(t_mean, t_std, d)}; {diff}]")
+            out.append("| " + " | ".join(line) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+def latex_tables(cells: dict, thesis: dict) -> str:
+    out = ["% Tables 6.1-6.4 (train/report.py): ours, mean \\pm std over seeds; the thesis's value below each cell"]
+    for metric, table in METRICS.items():
+        best = best_methods(cells, metric)
+        d = DIGITS[metric]
+        out += ["\\begin{table}[t]", "\\centering", f"\\caption{{{TABLE_TITLES[metric]} (mean $\\pm$ std over "
+                f"seeds; thesis Table {table} in parentheses). Best per task and column in bold.}}",
+                "\\begin{tabular}{llcccc}", "\\toprule",
+                "Task & Method & \\multicolumn{2}{c}{Factory} & \\multicolumn{2}{c}{Forge} \\\\",
+                " & & 4D & 6D & 4D & 6D \\\\", "\\midrule"]
+        for task, method in _rows(cells):
+            ours, theirs = [], []
+            for env, dim in COLUMNS:
+                key = (task, env, dim, method)
+                n, mean, std = cell_stats(cells[key], metric) if key in cells else (0, math.nan, math.nan)
+                text = "---" if math.isnan(mean) else f"{mean:.{d}f} $\\pm$ {std:.{d}f}"
+                ours.append(f"\\textbf{{{text}}}" if key in best else text)
+                t_mean, t_std = thesis.get((metric, task, method, env, dim), (math.nan, math.nan))
+                theirs.append("(---)" if math.isnan(t_mean) else f"({t_mean:.{d}f} $\\pm$ {t_std:.{d}f})")
+            name = THESIS_METHOD_NAMES.get(method, method)
+            out.append(f"{task} & {name} & " + " & ".join(ours) + " \\\\")
+            out.append(" & & " + " & ".join(theirs) + " \\\\")
+        out += ["\\bottomrule", "\\end{tabular}", "\\end{table}", ""]
+    return "\n".join(out)
+
+
+def _rows(cells: dict) -> list[tuple[str, str]]:
+    pairs = {(k[0], k[3]) for k in cells}
+    return sorted(pairs, key=lambda tm: _order((tm[0], "factory", 4, tm[1]))[:4])
+
+
+# ----------------------------------------------------------------------------- rliable
+def aggregate_stats(cells: dict, reps: int = 2000, seed: int = 0) -> dict:
+    """IQM of success per method over its configurations, and probabilities of improvement, with
+    95 % stratified-bootstrap intervals (rliable). Each score matrix is (seeds, configurations);
+    where configurations have different seed counts, the smallest count is used (lowest seeds)."""
+    import warnings
+
+    from rliable import library as rly
+    from rliable import metrics as rly_metrics
+
+    warnings.filterwarnings("ignore", message="random_state is deprecated", category=FutureWarning)  # arch, via rliable
+
+    def matrix(method: str, configs: list[tuple]) -> np.ndarray:
+        per = [sorted(cells[c + (method,)], key=lambda r: r["seed"]) for c in configs]
+        n = min(len(p) for p in per)
+        return np.array([[p[i]["success_rate"] for p in per] for i in range(n)], dtype=np.float64)
+
+    methods = sorted({k[3] for k in cells}, key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else 99)
+    configs_of = {m: sorted(k[:3] for k in cells if k[3] == m) for m in methods}
+    out: dict = {"metric": "success_rate", "reps": reps, "iqm": {}, "probability_of_improvement": {}}
+    rng = np.random.RandomState(seed)
+    scores = {m: matrix(m, configs_of[m]) for m in methods}
+    point, interval = rly.get_interval_estimates(
+        scores, lambda x: np.array([rly_metrics.aggregate_iqm(x)]), reps=reps, random_state=rng)
+    for m in methods:
+        out["iqm"][m] = {"value": float(point[m][0]), "ci95": [float(interval[m][0, 0]), float(interval[m][1, 0])],
+                         "configurations": len(configs_of[m]), "seeds_per_configuration": scores[m].shape[0]}
+    for a, b in COMPARISONS:
+        shared = sorted(set(configs_of.get(a, [])) & set(configs_of.get(b, [])))
+        if not shared:
+            continue
+        xa, xb = matrix(a, shared), matrix(b, shared)
+        n = min(len(xa), len(xb))
+        pairs = {f"{a}>{b}": (xa[:n], xb[:n])}
+        p_point, p_interval = rly.get_interval_estimates(
+            pairs, rly_metrics.probability_of_improvement, reps=reps, random_state=rng)
+        name = f"{a}>{b}"
+        out["probability_of_improvement"][name] = {
+            "value": float(np.squeeze(p_point[name])), "ci95": [float(v) for v in np.ravel(p_interval[name])],
+            "configurations": len(shared), "seeds_per_configuration": n}
+    return out
+
+
+def stats_figure(stats: dict) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
+    for ax, (name, block, xlabel) in zip(axes, (("IQM of final success", stats["iqm"], "IQM success rate"), (
+            "P(X > Y)", stats["probability_of_improvement"], "probability of improvement"))):
+        labels = list(block)
+        for i, label in enumerate(labels):
+            v, (lo, hi) = block[label]["value"], block[label]["ci95"]
+            ax.errorbar([v], [i], xerr=[[v - lo], [hi - v]], fmt="o", capsize=4)
+        ax.set_yticks(range(len(labels)), labels)
+        ax.set_xlim(0, 1)
+        ax.set_xlabel(xlabel + " (95 % stratified bootstrap)")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------- main
+def write_report(paths: list[Path], out: Path, reps: int = 2000) -> dict:
+    run_dirs = find_runs(paths)
+    if not run_dirs:
+        raise FileNotFoundError(f"no finished runs (config.json and metrics.json) under {', '.join(map(str, paths))}")
+    cells = load_cells(run_dirs)
+    thesis = load_thesis_tables()
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "tables.md", "# Results (train/report.py)\n\n" + markdown_tables(cells, thesis))
+    atomic_write_text(out / "tables.tex", latex_tables(cells, thesis))
+    rows = result_rows(cells, thesis)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(out / "results.csv", buf.getvalue())
+    stats = aggregate_stats(cells, reps=reps)
+    atomic_write_text(out / "stats.json", json.dumps(stats, indent=2))
+    figure = stats_figure(stats)
+    atomic_write(out / "stats.png", overwrite=False, write=lambda f: f.write(figure), suffix=".png")
+    by_panel: dict[tuple, list[Path]] = defaultdict(list)
+    for key, members in cells.items():
+        by_panel[key[:3]].extend(Path(r["run_dir"]) for r in members)
+    curves = {}
+    for (task, env, dim), dirs in sorted(by_panel.items()):
+        name = f"curves_{task}_{env}_{dim}d.png"
+        curves[name] = plot(dirs, out / name, title=f"{task} {env} {dim}D")
+    return {"runs": len(run_dirs), "configurations": len(cells), "stats": stats, "curves": sorted(curves)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("paths", type=Path, nargs="+", help="run directories or sweep directories")
+    ap.add_argument("--out", type=Path, required=True, help="the report's directory (new or empty)")
+    ap.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (rliable)")
+    args = ap.parse_args(argv)
+    if args.out.exists() and any(args.out.iterdir()):
+        ap.error(f"--out {args.out} is not empty; choose another directory (reports are never overwritten)")
+    try:
+        summary = write_report(args.paths, args.out, reps=args.reps)
+    except (FileNotFoundError, MixedCellError) as e:
+        ap.error(str(e))
+    print(json.dumps(summary["stats"], indent=2))
+    print(f"train/report.py: {summary['runs']} runs, {summary['configurations']} configurations -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

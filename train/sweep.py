@@ -1,0 +1,284 @@
+"""Run a grid of train/run.py trials on Ray: a local Ray by default, a cluster with --address.
+
+    python train/sweep.py --out runs/sweeps/quick --grid quick -- --total-steps 12000
+    python train/sweep.py --out runs/sweeps/peg --tasks PegInsert --envs factory --action-dims 4 6 \\
+        --methods sac kgrl --seeds 0 1 2 -- --total-steps 30000 --num-envs 16
+    python train/sweep.py --out runs/sweeps/thesis --grid thesis --address auto --gpus-per-trial 0.25
+    python train/sweep.py --out runs/sweeps/quick --status       # one line per trial
+    python train/report.py runs/sweeps/quick --out runs/reports/quick
+
+A sweep directory holds sweep.json (its grid and the arguments every trial gets) and one run
+directory of train/run.py per trial, named from the configuration alone:
+DIR/<task>_<env>_<D>d_<method>/seed<S>/ with run.py's files, the trial's log train.log (every
+attempt appended) and trial.json (state, attempts, times, the log's tail on failure).
+
+Trials are Ray core tasks, each running one train/run.py process. Core tasks rather than Ray
+Tune: a trial is a whole training process with its own run directory, checkpointing and resume,
+and nothing here searches hyperparameters; Tune would move each trial's working directory and
+storage into its own layout. Restartable:
+- a trial with metrics.json is done and never started again; re-running a finished sweep starts
+  nothing;
+- a trial with a checkpoint continues with `--resume` (run.py checkpoints as soon as it starts);
+- a trial whose process dies (a signal such as SIGKILL, or the machine's OOM killer) is retried
+  by Ray up to --max-retries times (`retry_exceptions` names only that case: an ordinary error
+  exit of run.py, e.g. a bad argument, fails the trial at once), then reported as failed with the
+  tail of its log;
+- killing the driver leaves the trials' checkpoints; starting it again continues the rest.
+Shared prerequisites (KGRL's demonstrations and KMP tables, the vision methods' image sets and
+VAEs) are made by the first trial that needs them, under vkgrl_newton/cache.py's file locks:
+never by two trials at once, the others wait and reuse them. On a cluster --cache-dir (passed to
+run.py) and --out must be on storage every node sees.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from vkgrl_newton._io import atomic_write_text  # noqa: E402
+from vkgrl_newton.sweep import (TrialProcessDied, log_tail, read_trial_state, run_trial, trial_status,  # noqa: E402
+                                write_trial_state)
+
+RUN_PY = ROOT / "train" / "run.py"
+TASKS = ("PegInsert", "GearMesh", "NutThread")
+ENVS = ("factory", "forge")
+ACTION_DIMS = (4, 6)
+METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
+AXES = ("tasks", "envs", "action_dims", "methods", "seeds")
+GRIDS = {
+    # the thesis's comparison: 48 configurations x 10 seeds (chapter 6)
+    "thesis": {"tasks": list(TASKS), "envs": list(ENVS), "action_dims": list(ACTION_DIMS), "methods": list(METHODS),
+               "seeds": list(range(10))},
+    # what a 2-core CPU finishes in about an hour at --total-steps 12000 (README)
+    "quick": {"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [4, 6], "methods": ["sac", "kgrl"],
+              "seeds": [0, 1, 2]},
+}
+ALLOWED = {"tasks": TASKS, "envs": ENVS, "action_dims": ACTION_DIMS, "methods": METHODS}
+# ----------------------------------------------------------------------------- the grid
+def validate_grid(grid: dict) -> dict:
+    """The grid with its axes checked; ValueError names a bad axis or value and the allowed ones."""
+    unknown = set(grid) - set(AXES)
+    if unknown:
+        raise ValueError(f"grid: unknown axes {sorted(unknown)}; allowed: {list(AXES)}")
+    out = {}
+    for axis in AXES:
+        values = grid.get(axis)
+        if not values:
+            raise ValueError(f"grid: axis {axis!r} is missing or empty")
+        if axis == "seeds":
+            if not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in values):
+                raise ValueError(f"grid: seeds must be non-negative integers, got {values!r}")
+        else:
+            bad = [v for v in values if v not in ALLOWED[axis]]
+            if bad:
+                raise ValueError(f"grid: {axis} {bad!r} not allowed; allowed: {list(ALLOWED[axis])}")
+        if len(set(values)) != len(values):
+            raise ValueError(f"grid: axis {axis!r} repeats a value: {values!r}")
+        out[axis] = list(values)
+    return out
+
+
+def configuration_name(task: str, env: str, action_dim: int, method: str) -> str:
+    return f"{task}_{env}_{action_dim}d_{method}"
+
+
+def trials_of(grid: dict, out: Path) -> list[dict]:
+    """One dict per trial, in grid order (task, env, action dim, method, seed)."""
+    trials = []
+    for task, env, dim, method, seed in itertools.product(*(grid[a] for a in AXES)):
+        name = configuration_name(task, env, dim, method)
+        trials.append({"name": f"{name}/seed{seed}", "task": task, "env": env, "action_dim": dim,
+                       "method": method, "seed": seed, "run_dir": str(out / name / f"seed{seed}")})
+    return trials
+
+
+# ----------------------------------------------------------------------------- the driver
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("--out", type=Path, required=True, help="the sweep's directory")
+    ap.add_argument("--grid", default=None,
+                    help=f"a named grid ({', '.join(GRIDS)}) or a JSON file with the axes {list(AXES)}; "
+                         "the axis flags below replace its axes")
+    ap.add_argument("--tasks", nargs="+", default=None)
+    ap.add_argument("--envs", nargs="+", default=None)
+    ap.add_argument("--action-dims", nargs="+", type=int, default=None)
+    ap.add_argument("--methods", nargs="+", default=None)
+    ap.add_argument("--seeds", nargs="+", type=int, default=None)
+    ap.add_argument("--address", default=None,
+                    help="a Ray cluster to join (e.g. auto, or ray://host:10001; default: $RAY_ADDRESS, else a local "
+                         "Ray started for this sweep)")
+    ap.add_argument("--cpus-per-trial", type=float, default=1.0,
+                    help="Ray CPUs per trial (default 1; with 1 CPU a trial runs run.py --no-overlap unless the "
+                         "run arguments say --overlap)")
+    ap.add_argument("--gpus-per-trial", type=float, default=0.0, help="GPU fraction per trial (CUDA; default 0)")
+    ap.add_argument("--max-concurrent", type=int, default=None,
+                    help="trials in flight at once (default: as many as the cluster's resources allow)")
+    ap.add_argument("--max-retries", type=int, default=2, help="restarts of a trial whose process died")
+    ap.add_argument("--status", action="store_true", help="print one line per trial and exit")
+    ap.add_argument("--no-progress", action="store_true")
+    return ap
+
+
+def resolve_grid(args, ap) -> dict:
+    grid: dict = {}
+    if args.grid in GRIDS:
+        grid = dict(GRIDS[args.grid])
+    elif args.grid is not None:
+        path = Path(args.grid)
+        if not path.exists():
+            ap.error(f"--grid {args.grid!r}: neither a named grid ({', '.join(GRIDS)}) nor a file")
+        try:
+            grid = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            ap.error(f"--grid {path}: not JSON ({e})")
+    for axis in AXES:
+        if getattr(args, axis) is not None:
+            grid[axis] = getattr(args, axis)
+    try:
+        return validate_grid(grid)
+    except ValueError as e:
+        ap.error(str(e))
+
+
+def split_argv(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(the sweep's own arguments, the ones after `--` that every run.py gets)."""
+    if "--" in argv:
+        i = argv.index("--")
+        return argv[:i], argv[i + 1:]
+    return argv, []
+
+
+FORBIDDEN_RUN_ARGS = ("--run-dir", "--task", "--env", "--action-dim", "--method", "--seed", "--resume")
+
+
+def main(argv: list[str] | None = None) -> int:
+    own, run_args = split_argv(list(sys.argv[1:] if argv is None else argv))
+    ap = build_parser()
+    args = ap.parse_args(own)
+    for flag in FORBIDDEN_RUN_ARGS:
+        if any(a == flag or a.startswith(flag + "=") for a in run_args):
+            ap.error(f"{flag} after `--`: the sweep sets it per trial (grid axes: {list(AXES)})")
+    record_path = args.out / "sweep.json"
+    given_grid = args.grid is not None or any(getattr(args, a) is not None for a in AXES)
+    if record_path.exists():
+        record = json.loads(record_path.read_text())
+        if given_grid or run_args:
+            grid = resolve_grid(args, ap) if given_grid else record["grid"]
+            if grid != record["grid"] or (run_args and run_args != record["run_args"]):
+                ap.error(f"--out {args.out} holds another sweep (grid {record['grid']}, run arguments "
+                         f"{record['run_args']}); run it again with just --out, or choose another directory")
+        grid, run_args = record["grid"], record["run_args"]
+    elif args.status:
+        ap.error(f"--out {args.out} holds no sweep (no sweep.json)")
+    elif not given_grid:
+        ap.error("give a grid: --grid NAME|FILE or the axis flags (--tasks --envs --action-dims --methods --seeds)")
+    else:
+        grid = resolve_grid(args, ap)
+    trials = trials_of(grid, args.out)
+
+    if args.status:
+        return print_status(trials)
+
+    if not record_path.exists():
+        args.out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(record_path, json.dumps({"grid": grid, "run_args": run_args, "trials": len(trials),
+                                                   "created": time.strftime("%Y-%m-%d %H:%M:%S")}, indent=2))
+    trial_args = list(run_args)
+    if args.cpus_per_trial <= 1 and "--overlap" not in run_args and "--no-overlap" not in run_args:
+        trial_args.append("--no-overlap")  # one core: a second thread only contends
+    todo = [t for t in trials if not (Path(t["run_dir"]) / "metrics.json").exists()]
+    print(f"train/sweep.py: {len(trials)} trials in {args.out}, {len(trials) - len(todo)} done, {len(todo)} to run")
+    if not todo:
+        return print_status(trials)
+    return run_sweep(args, todo, trials, trial_args)
+
+
+def run_sweep(args, todo: list[dict], trials: list[dict], trial_args: list[str]) -> int:
+    import ray
+
+    address = args.address or os.environ.get("RAY_ADDRESS")
+    # a local Ray by default: no dashboard, the trials' output in their own logs, not the driver's
+    ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    remote = ray.remote(run_trial).options(
+        num_cpus=args.cpus_per_trial, num_gpus=args.gpus_per_trial, max_retries=args.max_retries,
+        retry_exceptions=[TrialProcessDied])
+    limit = args.max_concurrent or len(todo)
+    queue, running, failed = list(todo), {}, []
+    bar = tqdm(total=len(todo), unit="trial", disable=args.no_progress, desc="sweep")
+    try:
+        while queue or running:
+            while queue and len(running) < limit:
+                trial = queue.pop(0)
+                running[remote.remote(trial, str(RUN_PY), trial_args, time.time())] = trial
+            ready, _ = ray.wait(list(running), num_returns=1, timeout=10.0)
+            for ref in ready:
+                trial = running.pop(ref)
+                try:
+                    ray.get(ref)
+                except ray.exceptions.RayError as e:  # the trial failed, or died more often than retried
+                    cause = getattr(e, "cause", None) or e
+                    write_trial_state(Path(trial["run_dir"]), state="failed", error=str(cause)[-4000:],
+                                      log_tail=log_tail(Path(trial["run_dir"])))
+                    failed.append(trial["name"])
+                    tqdm.write(f"FAILED {trial['name']}:\n{cause}")
+                bar.update(1)
+            done_tr = sum(trial_status(t)[1] for t in running.values())
+            bar.set_postfix(running=len(running), failed=len(failed), transitions=done_tr, refresh=True)
+    except KeyboardInterrupt:
+        bar.close()
+        tqdm.write("interrupted: the running trials stop at their next step and keep their checkpoints; "
+                   "run the same command again to continue")
+        for ref in running:
+            ray.cancel(ref)
+        ray.shutdown()
+        return 130
+    bar.close()
+    summary = sweep_summary(trials)
+    atomic_write_text(args.out / "sweep_summary.json", json.dumps(summary, indent=2), overwrite=True)
+    ray.shutdown()
+    print_status(trials)
+    return 1 if failed else 0
+
+
+def sweep_summary(trials: list[dict]) -> dict:
+    """Per trial: state, attempts and the sweep's overhead (submitted -> first env transition)."""
+    out = {}
+    for t in trials:
+        run_dir = Path(t["run_dir"])
+        state, transitions = trial_status(t)
+        record = {"state": state, "transitions": transitions, **{
+            k: v for k, v in read_trial_state(run_dir).items() if k in ("attempts", "resumed")}}
+        ts = read_trial_state(run_dir)
+        if state == "done" and "submitted_unix" in ts:
+            training = json.loads((run_dir / "metrics.json").read_text()).get("training", {})
+            if "first_transition_unix" in training:
+                record["ray_s"] = ts["started_unix"] - ts["submitted_unix"]  # queueing and a worker's start
+                record["startup_s"] = training["first_transition_unix"] - ts["started_unix"]  # process, env, caches
+        out[t["name"]] = record
+    return out
+
+
+def print_status(trials: list[dict]) -> int:
+    counts: dict[str, int] = {}
+    for t in trials:
+        state, transitions = trial_status(t)
+        counts[state] = counts.get(state, 0) + 1
+        attempts = read_trial_state(Path(t["run_dir"])).get("attempts", 0)
+        print(f"{state:8s} {t['name']:40s} {transitions:9d} transitions  attempts {attempts}")
+    print("  ".join(f"{k}: {v}" for k, v in sorted(counts.items())))
+    return 1 if counts.get("failed") else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,105 @@
+"""Learning curves of train/run.py runs: mean +- std over seeds, one line per method (thesis
+Figs. 6.11-6.18); the one plotting path of train/plot_runs.py and train/report.py.
+
+Each group's curves are put on a common grid of env transitions (linear interpolation, up to the
+shortest run of the group) and drawn as mean +- one standard deviation (numpy's, ddof 0) across
+its seeds.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from vkgrl_newton._io import atomic_write
+from vkgrl_newton.results.curves import CURVES_FILE, read_curves
+
+PANELS = (("episode/reward", "episode reward"), ("episode/success_rate", "success rate"),
+          ("episode/mean_contact_force", "mean contact force (N)"))  # tensorboard tags (train/run.py)
+PANEL_CURVE_KEYS = ("episode_reward", "success_rate", "mean_contact_force")  # the same in curves.jsonl
+
+
+def read_run(run_dir: Path) -> tuple[dict, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """(config, {tag: (transitions, values)}) of one run directory: from its curves.jsonl, or
+    from its tensorboard scalars for a run older than curves.jsonl."""
+    run_dir = Path(run_dir)
+    config_path = run_dir / "config.json"
+    if not config_path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a train/run.py run directory (no config.json)")
+    config = json.loads(config_path.read_text())
+    if (run_dir / CURVES_FILE).exists():
+        rows = read_curves(run_dir)
+        steps = np.array([r["transitions"] for r in rows], dtype=np.float64)
+        return config, {tag: (steps, np.array([r[key] for r in rows], dtype=np.float64))
+                        for (tag, _), key in zip(PANELS, PANEL_CURVE_KEYS) if rows}
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir / "tb"), size_guidance={"scalars": 0})
+    acc.Reload()
+    curves = {}
+    for tag, _ in PANELS:
+        if tag in acc.Tags()["scalars"]:
+            events = acc.Scalars(tag)
+            steps = np.array([e.step for e in events], dtype=np.float64)
+            values = np.array([e.value for e in events], dtype=np.float64)
+            order = np.argsort(steps, kind="stable")
+            curves[tag] = (steps[order], values[order])
+    return config, curves
+
+
+def group_label(config: dict) -> str:
+    label = config["method"]
+    return label if config.get("time_obs", True) else label + " (no time obs)"
+
+
+def mean_std(runs: list[tuple[np.ndarray, np.ndarray]], points: int = 100):
+    """Common grid up to the shortest run; (grid, mean, std) across runs."""
+    end = min(steps[-1] for steps, _ in runs)
+    start = max(steps[0] for steps, _ in runs)
+    grid = np.linspace(start, end, points) if end > start else np.array([end])
+    stacked = np.stack([np.interp(grid, steps, values) for steps, values in runs])
+    return grid, stacked.mean(0), stacked.std(0)
+
+
+def plot(run_dirs: list[Path], out: Path, title: str | None = None) -> dict:
+    """Learning curves of the runs, one line per method (group_label), mean +- std over seeds,
+    to the PNG `out` (never overwritten); returns each group's final mean and std per panel."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups: dict[str, list[dict]] = defaultdict(list)
+    titles = set()
+    for run_dir in run_dirs:
+        config, curves = read_run(run_dir)
+        groups[group_label(config)].append(curves)
+        titles.add(f"{config['task']} {config['env']} {config['action_dim']}D")
+    fig, axes = plt.subplots(1, len(PANELS), figsize=(5 * len(PANELS), 3.8))
+    summary = {}
+    for label, members in sorted(groups.items()):
+        summary[label] = {"seeds": len(members)}
+        for ax, (tag, name) in zip(axes, PANELS):
+            runs = [c[tag] for c in members if tag in c and len(c[tag][0])]
+            if not runs:
+                continue
+            grid, mean, std = mean_std(runs)
+            line, = ax.plot(grid, mean, label=f"{label} (n={len(runs)})")
+            ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+            summary[label][tag] = {"final_mean": float(mean[-1]), "final_std": float(std[-1])}
+    for ax, (_, name) in zip(axes, PANELS):
+        ax.set_xlabel("env transitions")
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title or " / ".join(sorted(titles)))
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120)
+    plt.close(fig)
+    atomic_write(out, overwrite=False, write=lambda f: f.write(buf.getvalue()), suffix=".png")
+    return summary

@@ -1,0 +1,120 @@
+"""One trial of a sweep (train/sweep.py): a Ray task that runs train/run.py in its run directory,
+resumes it when it has a checkpoint, and records its state on disk (trial.json, train.log).
+
+A module of the package, not of train/, so that Ray's workers import it by name (the exception
+class they raise must be the one the driver's retry_exceptions names).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from vkgrl_newton._io import atomic_write_text
+from vkgrl_newton.results.curves import read_curves
+
+LOG_TAIL_LINES = 30
+
+
+class TrialProcessDied(RuntimeError):
+    """run.py was killed (a signal or an interrupt): Ray retries the trial, which resumes."""
+
+
+class TrialFailed(RuntimeError):
+    """run.py exited with an error: retrying would fail the same way."""
+
+
+def trial_command(trial: dict, run_py: str, run_args: list[str], resume: bool) -> list[str]:
+    cmd = [sys.executable, run_py, "--run-dir", trial["run_dir"], "--task", trial["task"],
+           "--env", trial["env"], "--action-dim", str(trial["action_dim"]), "--method", trial["method"],
+           "--seed", str(trial["seed"]), "--no-progress", *run_args]
+    return cmd + ["--resume"] if resume else cmd
+
+
+def _die_with_parent() -> None:
+    """In the child: SIGTERM when the Ray worker that started it dies (Linux), so a retried trial
+    never runs beside an orphan of its previous attempt."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+# ----------------------------------------------------------------------------- trial state on disk
+def read_trial_state(run_dir: Path) -> dict:
+    path = run_dir / "trial.json"
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def write_trial_state(run_dir: Path, **fields) -> None:
+    state = {**read_trial_state(run_dir), **fields}
+    atomic_write_text(run_dir / "trial.json", json.dumps(state, indent=2), overwrite=True)
+
+
+def log_tail(run_dir: Path, lines: int = LOG_TAIL_LINES) -> str:
+    log = run_dir / "train.log"
+    return "\n".join(log.read_text(errors="replace").splitlines()[-lines:]) if log.exists() else ""
+
+
+def trial_status(trial: dict, stale_s: float = 300.0) -> tuple[str, int]:
+    """(done | running | failed | pending, transitions so far) from the trial's files."""
+    run_dir = Path(trial["run_dir"])
+    rows = read_curves(run_dir) if run_dir.exists() else []
+    transitions = int(rows[-1]["transitions"]) if rows else 0
+    if (run_dir / "metrics.json").exists():
+        return "done", transitions
+    state = read_trial_state(run_dir).get("state")
+    if state == "failed":
+        return "failed", transitions
+    log = run_dir / "train.log"
+    if state == "running" and log.exists() and time.time() - log.stat().st_mtime < stale_s:
+        return "running", transitions
+    return "pending", transitions
+
+
+# ----------------------------------------------------------------------------- one trial (a Ray task)
+def run_trial(trial: dict, run_py: str, run_args: list[str], submitted_unix: float) -> dict:
+    """Run (or resume) one trial's train/run.py to the end; the body of the Ray task."""
+    run_dir = Path(trial["run_dir"])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if (run_dir / "metrics.json").exists():
+        return {"name": trial["name"], "skipped": True}
+    resume = (run_dir / "checkpoints" / "last.pt").exists()
+    if not resume and (run_dir / "config.json").exists():  # killed before its first checkpoint
+        aside = run_dir / f"aborted_{time.strftime('%Y%m%d-%H%M%S')}"
+        aside.mkdir()
+        for name in ("config.json", "tb", "curves.jsonl"):
+            if (run_dir / name).exists():
+                (run_dir / name).rename(aside / name)
+    cmd = trial_command(trial, run_py, run_args, resume)
+    attempts = int(read_trial_state(run_dir).get("attempts", 0)) + 1
+    started = time.time()
+    write_trial_state(run_dir, state="running", attempts=attempts, host=socket.gethostname(),
+                      submitted_unix=submitted_unix, started_unix=started, resumed=resume, command=cmd)
+    with open(run_dir / "train.log", "a") as log:
+        log.write(f"=== attempt {attempts} on {socket.gethostname()} at {time.strftime('%Y-%m-%d %H:%M:%S')}: "
+                  f"{' '.join(cmd)}\n")
+        log.flush()
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=Path(run_py).parents[1],
+                                start_new_session=True, preexec_fn=_die_with_parent)
+        write_trial_state(run_dir, pid=proc.pid)
+        try:
+            code = proc.wait()
+        except BaseException:  # the Ray task cancelled or the worker stopping: stop the run too
+            proc.send_signal(signal.SIGINT)
+            proc.wait()
+            raise
+    write_trial_state(run_dir, returncode=code, ended_unix=time.time())
+    if code == 0 and (run_dir / "metrics.json").exists():
+        write_trial_state(run_dir, state="done")
+        return {"name": trial["name"], "skipped": False, "attempts": attempts}
+    if code < 0 or code == 130:  # killed by a signal, or interrupted: resumable from its checkpoint
+        raise TrialProcessDied(f"{trial['name']}: run.py died (exit {code}); log tail:\n{log_tail(run_dir)}")
+    write_trial_state(run_dir, state="failed", log_tail=log_tail(run_dir))
+    raise TrialFailed(f"{trial['name']}: run.py exited {code}; log tail:\n{log_tail(run_dir)}")
