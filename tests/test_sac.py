@@ -393,6 +393,24 @@ def test_presets_and_config_errors():
         make_sac_config("thesis", batch_size=0)
     with pytest.raises(RuntimeError, match="ready"):
         small_agent().update()
+    with pytest.raises(ValueError, match="obs_norm_eps=0.0 must be > 0"):
+        make_sac_config("quick", obs_norm_eps=0.0)
+
+
+def test_obs_norm_eps_is_the_floor_added_to_the_std():
+    """(x - mean) / (std + eps) with the configured eps, against float64 statistics."""
+    agent = small_agent(obs_dim=2, obs_norm_eps=1e-3)
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(256, 2, generator=g) * torch.tensor([0.005, 2.0])  # a 5 mm spread and a wide one
+    agent.add(x, torch.zeros(256, 2), torch.zeros(256), x, torch.zeros(256))
+    xd = x.double().numpy()
+    want = (xd - xd.mean(0)) / (xd.std(0) + 1e-3)  # rsl-rl: the biased (population) variance
+    # rsl-rl starts its variance at 1 and updates it as 1 + (var - 1) in float32: an absolute error
+    # up to ~2 * 2^-24 in a 2.5e-5 variance, i.e. ~1e-5 in the 5 mm std, ~2e-3 of (std + eps)
+    np.testing.assert_allclose(agent.normalize(x).double().numpy(), want, rtol=3e-3, atol=1e-5)
+    with_default = small_agent(obs_dim=2)  # rsl-rl's eps 1e-2 squeezes the 5 mm input to ~1/3
+    with_default.add(x, torch.zeros(256, 2), torch.zeros(256), x, torch.zeros(256))
+    assert with_default.normalize(x)[:, 0].std().item() == pytest.approx(0.005 / 0.015, rel=0.1)
 
 
 def test_actor_init_std_starts_at_zero_mean_and_that_std():

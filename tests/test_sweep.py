@@ -136,7 +136,7 @@ def test_sweep_finishes_retries_a_killed_trial_and_restarts_nothing(sweep_py, wp
     assert "holds another sweep" in capsys.readouterr().err
 
 
-def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_path):
+def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_path, capsys):
     out = tmp_path / "sweep"
     grid = [*GRID, "--action-dims", "4", "--seeds", "0", "1", "--max-concurrent", "1"]
     first, second = out / "PegInsert_factory_4d_sac" / "seed0", out / "PegInsert_factory_4d_sac" / "seed1"
@@ -144,6 +144,9 @@ def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_p
     try:  # kill the driver once the first trial is done and the second has checkpointed some
         wait_for(lambda: (first / "metrics.json").exists() and checkpointed_transitions(second) >= 300, 300,
                  "one finished and one running trial")
+        sweep_py.main(["--out", str(out), "--status"])  # read from the trials' files while they run
+        lines = {ln.split()[1]: ln.split()[0] for ln in capsys.readouterr().out.splitlines() if "seed" in ln}
+        assert lines == {"PegInsert_factory_4d_sac/seed0": "done", "PegInsert_factory_4d_sac/seed1": "running"}
         os.killpg(driver.pid, signal.SIGKILL)
         driver.wait(timeout=30)
     finally:
@@ -151,6 +154,8 @@ def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_p
             os.killpg(driver.pid, signal.SIGKILL)
     done_at = (first / "metrics.json").stat().st_mtime
     orphan = state(second)["pid"]  # its run.py dies with the driver's Ray worker
+    from vkgrl_newton.sweep import _alive
+
     wait_for(lambda: not _alive(orphan), 60, "the killed sweep's trial process to exit")
     again = start_driver(out, *grid)
     log, _ = again.communicate(timeout=300)
@@ -160,13 +165,3 @@ def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_p
     assert state(second)["attempts"] == 2 and state(second)["resumed"] is True
     assert_finished(second, resumed=True)
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:  # a zombie (exited, not yet reaped) counts as gone
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except FileNotFoundError:
-        return False

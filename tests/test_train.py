@@ -136,7 +136,9 @@ def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatc
     from vkgrl_newton.envs.assembly_env import AssemblyEnv
 
     run_dir = tmp_path / "sac"
-    base = ["--method", "sac", "--run-dir", str(run_dir), "--eval-episodes", "0", "--checkpoint-every", "100", *TINY]
+    # the overlapped loop (the CPU default, named here): the interrupt is raised in its worker thread
+    base = ["--method", "sac", "--run-dir", str(run_dir), "--eval-episodes", "0", "--checkpoint-every", "100",
+            "--overlap", *TINY]
     # "kill" the run on its 9th env step: it checkpoints what it has (16 transitions) and exits 130
     calls = {"n": 0}
     real_step = AssemblyEnv.step

@@ -1,6 +1,6 @@
 """Run a grid of train/run.py trials on Ray: a local Ray by default, a cluster with --address.
 
-    python train/sweep.py --out runs/sweeps/quick --grid quick -- --total-steps 12000
+    python train/sweep.py --out runs/sweeps/quick --grid quick        # 57 min on a 2-core CPU
     python train/sweep.py --out runs/sweeps/peg --tasks PegInsert --envs factory --action-dims 4 6 \\
         --methods sac kgrl --seeds 0 1 2 -- --total-steps 30000 --num-envs 16
     python train/sweep.py --out runs/sweeps/thesis --grid thesis --address auto --gpus-per-trial 0.25
@@ -59,7 +59,7 @@ GRIDS = {
     # the thesis's comparison: 48 configurations x 10 seeds (chapter 6)
     "thesis": {"tasks": list(TASKS), "envs": list(ENVS), "action_dims": list(ACTION_DIMS), "methods": list(METHODS),
                "seeds": list(range(10))},
-    # what a 2-core CPU finishes in about an hour at --total-steps 12000 (README)
+    # what a 2-core CPU finishes in about an hour on the quick preset (57 min; docs/benchmarks.md)
     "quick": {"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [4, 6], "methods": ["sac", "kgrl"],
               "seeds": [0, 1, 2]},
 }

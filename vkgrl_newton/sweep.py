@@ -63,19 +63,36 @@ def log_tail(run_dir: Path, lines: int = LOG_TAIL_LINES) -> str:
 
 
 def trial_status(trial: dict, stale_s: float = 300.0) -> tuple[str, int]:
-    """(done | running | failed | pending, transitions so far) from the trial's files."""
+    """(done | running | failed | pending, transitions so far) from the trial's files.
+
+    Running: its run.py process is alive (on this host), or, for a trial on another node, one of
+    its files changed within stale_s."""
     run_dir = Path(trial["run_dir"])
+    metrics_path = run_dir / "metrics.json"
+    if metrics_path.exists():
+        return "done", int(json.loads(metrics_path.read_text()).get("training", {}).get("transitions", 0))
     rows = read_curves(run_dir) if run_dir.exists() else []
     transitions = int(rows[-1]["transitions"]) if rows else 0
-    if (run_dir / "metrics.json").exists():
-        return "done", transitions
-    state = read_trial_state(run_dir).get("state")
-    if state == "failed":
+    state = read_trial_state(run_dir)
+    if state.get("state") == "failed":
         return "failed", transitions
-    log = run_dir / "train.log"
-    if state == "running" and log.exists() and time.time() - log.stat().st_mtime < stale_s:
-        return "running", transitions
+    if state.get("state") == "running":
+        if state.get("host") == socket.gethostname() and state.get("pid"):
+            alive = _alive(int(state["pid"]))
+        else:
+            files = [run_dir / n for n in ("train.log", "curves.jsonl", "checkpoints/last.pt")]
+            alive = any(f.exists() and time.time() - f.stat().st_mtime < stale_s for f in files)
+        if alive:
+            return "running", transitions
     return "pending", transitions
+
+
+def _alive(pid: int) -> bool:
+    """The process exists and is not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, IndexError):
+        return False
 
 
 # ----------------------------------------------------------------------------- one trial (a Ray task)

@@ -47,6 +47,10 @@ class SACConfig:
     hidden_dims: tuple[int, ...] = (512, 256, 128)
     activation: str = "elu"
     obs_normalization: bool = True
+    # rsl-rl EmpiricalNormalization's eps: inputs are (x - mean) / (std + eps), so a dimension
+    # whose spread is below eps is not blown up to unit scale. rsl-rl's default 1e-2 squeezes
+    # KGRL's TCP offsets (std 6-9 mm) to ~0.4 (docs/benchmarks.md).
+    obs_norm_eps: float = 1e-2
     # Decoupled weight decay of AdamW for actor and critics. 1e-4 is optax.adamw's default,
     # which the thesis used through SBX (torch's default would be 1e-2). log_alpha uses plain
     # Adam, as in SBX: decaying it would pull alpha towards 1.
@@ -91,6 +95,8 @@ class SACConfig:
                 raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be in ({lo}, {hi}]")
         if not self.init_alpha > 0 or not self.lr > 0:
             raise ValueError("SACConfig.init_alpha and SACConfig.lr must be > 0")
+        if not self.obs_norm_eps > 0:
+            raise ValueError(f"SACConfig.obs_norm_eps={self.obs_norm_eps!r} must be > 0")
 
 
 SAC_PRESETS: dict[str, SACConfig] = {
@@ -290,7 +296,8 @@ class SAC:
         self.critic_optim = torch.optim.AdamW(self.critic.parameters(), **adamw)
         self.alpha_optim = torch.optim.Adam([self.log_alpha], lr=config.lr, fused=True)
         # Statistics from env batches as they arrive (never from replay samples), applied at use.
-        self.normalizer = EmpiricalNormalization(obs_dim).to(self.device) if config.obs_normalization else None
+        self.normalizer = (EmpiricalNormalization(obs_dim, eps=config.obs_norm_eps).to(self.device)
+                           if config.obs_normalization else None)
         self.buffer = ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device)
         self.num_transitions = 0  # env transitions added, summed over worlds
         self.num_env_steps = 0  # batched `add` calls
