@@ -47,10 +47,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from vkgrl_newton._io import atomic_write, atomic_write_text  # noqa: E402
 from vkgrl_newton.results.plots import plot  # noqa: E402
 from vkgrl_newton.results.thesis import METRICS, THESIS_METHOD_NAMES, load_thesis_tables  # noqa: E402
+from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, TASKS  # noqa: E402
 
-TASK_ORDER = ("PegInsert", "GearMesh", "NutThread")
-METHOD_ORDER = ("kgrl", "sac", "vision_kgrl", "vision_sac")  # the thesis's row order
-COLUMNS = (("factory", 4), ("factory", 6), ("forge", 4), ("forge", 6))
+TASK_ORDER = tuple(TASKS)  # PegInsert, GearMesh, NutThread: the thesis's row order
+METHOD_ORDER = ("kgrl", "sac", "vision_kgrl", "vision_sac")  # the thesis's row order (alphabetical, not METHODS)
+COLUMNS = tuple((env, dim) for env in FAMILIES for dim in ACTION_DIMS)  # Factory 4D, 6D, Forge 4D, 6D
 TABLE_TITLES = {"mean_episode_reward": "Final mean reward", "success_rate": "Final success rate",
                 "mean_contact_force": "Final mean contact force magnitude (N)",
                 "time_to_first_success_s": "Time to first success (s)"}

@@ -58,9 +58,8 @@ from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY,
 from vkgrl_newton.results.curves import CURVES_FILE, CurveWriter  # noqa: E402
 from vkgrl_newton.runtime import add_verbose_flag, configure_warp, default_device  # noqa: E402
 from vkgrl_newton.sim.scene import GEOMETRIES, SimConfig, geometry_error  # noqa: E402
-from vkgrl_newton.tasks import TASKS  # noqa: E402
+from vkgrl_newton.tasks import METHODS, TASKS  # noqa: E402
 
-METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
 # what a run writes in its directory; one holding any of them holds a run (other files, such as a
 # sweep's train.log, may sit beside them)
 RUN_FILES = ("config.json", "checkpoints", "tb", "metrics.json", CURVES_FILE)

@@ -46,14 +46,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
+from vkgrl_newton.tasks import ACTION_DIMS, METHODS  # noqa: E402
+from vkgrl_newton.tasks import FAMILIES as ENVS  # noqa: E402
+from vkgrl_newton.tasks import TASKS as TASK_SPECS  # noqa: E402
 from vkgrl_newton.sweep import (TrialProcessDied, log_tail, read_trial_state, run_trial, trial_status,  # noqa: E402
                                 write_trial_state)
 
 RUN_PY = ROOT / "train" / "run.py"
-TASKS = ("PegInsert", "GearMesh", "NutThread")
-ENVS = ("factory", "forge")
-ACTION_DIMS = (4, 6)
-METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
+TASKS = tuple(TASK_SPECS)
 AXES = ("tasks", "envs", "action_dims", "methods", "seeds")
 GRIDS = {
     # the thesis's comparison: 48 configurations x 10 seeds (chapter 6)
@@ -257,9 +257,9 @@ def sweep_summary(trials: list[dict]) -> dict:
     for t in trials:
         run_dir = Path(t["run_dir"])
         state, transitions = trial_status(t)
-        record = {"state": state, "transitions": transitions, **{
-            k: v for k, v in read_trial_state(run_dir).items() if k in ("attempts", "resumed")}}
         ts = read_trial_state(run_dir)
+        record = {"state": state, "transitions": transitions,
+                  **{k: v for k, v in ts.items() if k in ("attempts", "resumed")}}
         if state == "done" and "submitted_unix" in ts:
             training = json.loads((run_dir / "metrics.json").read_text()).get("training", {})
             if "first_transition_unix" in training:

@@ -42,8 +42,8 @@ def _die_with_parent() -> None:
     never runs beside an orphan of its previous attempt."""
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
+    except (OSError, AttributeError):  # not Linux (no libc.so.6 / prctl): the child outlives a
+        return  # killed worker there, so a retry can run beside it; Linux is what this project runs on
 
 
 # ----------------------------------------------------------------------------- trial state on disk

@@ -52,6 +52,11 @@ class TaskSpec:
 
 _deg = math.radians
 
+# The experiment's other axes (thesis ch. 5-6): environment families, action spaces, methods.
+FAMILIES = ("factory", "forge")
+ACTION_DIMS = (4, 6)
+METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
+
 TASKS: dict[str, TaskSpec] = {
     "PegInsert": TaskSpec(
         name="PegInsert",

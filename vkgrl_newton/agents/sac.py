@@ -206,6 +206,8 @@ class Actor(nn.Module):
             layers += [nn.Linear(i, o), ACTIVATIONS[cfg.activation]()]
         self.trunk = nn.Sequential(*layers)
         self.head = nn.Linear(dims[-1], 2 * action_dim)  # mean and log_std side by side
+        # forward() walks the Linear layers itself (agents/dense.py); the Sequential stays so that
+        # the parameters keep their state_dict names (trunk.0, trunk.2, ...) and old checkpoints load
         self.linears = [m for m in self.trunk if isinstance(m, nn.Linear)] + [self.head]
         self.activation = ACTIVATIONS[cfg.activation]()
         self.matmul = "torch"  # agents/dense.py backend; SAC sets it for its device

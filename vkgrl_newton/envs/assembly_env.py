@@ -79,12 +79,9 @@ from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from
 from ..runtime import torch_device
 from ..sim.physics import ActionBuffers, ControllerBuffers, ForceBuffers, PhysicsStepper
 from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene
-from ..tasks import get_task
+from ..tasks import ACTION_DIMS, FAMILIES, get_task
 
 __all__ = ["EnvConfig", "AssemblyEnv", "FAMILIES", "ACTION_DIMS", "TASK_GEOMETRY"]
-
-FAMILIES = ("factory", "forge")
-ACTION_DIMS = (4, 6)
 
 # Factory / Forge controller (Isaac Lab `factory_env_cfg.py`, `factory_control.py`, `forge_env_cfg.py`)
 FACTORY_KP = (100.0, 100.0, 100.0, 30.0, 30.0, 30.0)
@@ -245,7 +242,7 @@ class AssemblyEnv(VecEnv):
         self.substeps = scene.config.substeps
         self.substep_dt = scene.config.substep_dt
 
-        E, dev, tdev = self.num_envs, self.device, self.tdev
+        E, tdev = self.num_envs, self.tdev
 
         # controller buffers (torch tensors with warp views of the same memory)
         z = lambda *shape: torch.zeros(*shape, dtype=torch.float32, device=tdev)  # noqa: E731
