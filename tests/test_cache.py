@@ -47,7 +47,8 @@ def test_a_changed_demonstrator_version_names_new_cache_entries(monkeypatch, tmp
     from vkgrl_newton.vision.pipeline import VISION_PRESETS, default_vae_dir
 
     def names():
-        return (demos_path_for(tmp_path, "PegInsert", 16, 0), default_image_dir(tmp_path, "PegInsert", 64, 4096),
+        return (demos_path_for(tmp_path, "PegInsert", 16, 0),
+                default_image_dir(tmp_path, VISION_PRESETS["quick"].collect_config("PegInsert")),
                 default_vae_dir(tmp_path, "PegInsert", VISION_PRESETS["quick"]))
 
     old = names()

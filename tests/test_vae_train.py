@@ -31,13 +31,20 @@ def synthetic_set(directory: Path) -> Path:
     state = np.column_stack([rng.uniform(-1, 1, (N, 2)), rng.uniform(0, 1, N), rng.uniform(-3, 3, N)])
     state = state.astype(np.float32)  # x, y, z, yaw
     images = np.full((N, RES, RES, 3), 30, np.uint8)
+    pixels = np.full((N, 12), np.nan, np.float32)
     for i, (x, y, z, yaw) in enumerate(state):
         half = int(3 + 2 * z)
         cx, cy = int(round(16 + 9 * x)), int(round(16 + 9 * y))  # linear in x, y
         images[i, max(cy - half, 0):cy + half + 1, max(cx - half, 0):cx + half + 1] = (
             int(128 + 120 * np.cos(yaw)), 200, int(128 + 120 * np.sin(yaw)))
+        pixels[i, :3] = cx + 0.5, cy + 0.5, (2 * half + 1) ** 2  # the square's centre and area
+        pixels[i, 3:6] = 0.0, 0.0, 0.2
+        pixels[i, 6:] = 16.0, 30.0, 20.0, 0.0, 0.01, 0.1  # a held part that does not move in the image
+    # every frame near the hole: the fixed tip 5 mm x (x, y, z) from the held part, identity camera
+    held = np.tile([0.5, 0.0, 0.2], (N, 1))
+    geometry = np.column_stack([held, held + 0.005 * state[:, :3], np.zeros((N, 3)), np.tile([0, 0, 0, 1.0], (N, 1))])
     with ImageSetWriter(directory, N, RES, TASK, val_fraction=0.25, seed=0) as writer:
-        writer.add(images, state, np.repeat(np.arange(EPISODES), N // EPISODES))
+        writer.add(images, state, np.repeat(np.arange(EPISODES), N // EPISODES), geometry.astype(np.float32), pixels)
     return directory
 
 
@@ -87,6 +94,14 @@ def test_run_writes_every_output_and_validation_loss_falls(straight, image_dir):
     assert {f"r2_{t}" for t in PROBE_TARGETS} <= set(probe)
     assert all(isinstance(probe[f"r2_{t}"], float) and probe[f"r2_{t}"] <= 1 for t in PROBE_TARGETS)
     assert probe["num_fit"] == metrics["num_train"] and probe["num_score"] == metrics["num_val"]
+    near = metrics["probe_near_hole"]  # every frame is near the hole: all validation frames scored
+    assert near["num_images"] == metrics["num_val"] and near["num_fit"] == metrics["num_train"]
+    assert near["observation_noise_mm"] == 1.0 and near["pixel_baseline_num_images"] == metrics["num_val"]
+    for key in ("latent_linear_rmse_mm", "latent_mlp_rmse_mm", "pixel_baseline_rmse_mm", "mean_predictor_rmse_mm"):
+        assert set(near[key]) == {"x", "y", "z"} and all(v >= 0 for v in near[key].values()), key
+    # the square's centre is x, y up to rounding to the pixel (0.5 px of 9 px per 5 mm: <= 0.28 mm)
+    for axis in "xy":
+        assert near["pixel_baseline_linear_rmse_mm"][axis] < 0.28 < near["mean_predictor_rmse_mm"][axis]
 
 
 def test_tensorboard_scalars_per_epoch(straight):
@@ -143,8 +158,10 @@ def test_only_the_training_encoder_input_is_augmented(image_dir, tmp_path, monke
     batches = -(-len(images.train_idx) // 16)  # training batches of the one epoch
     val_batches = -(-len(images.val_idx) // 16)
     assert len(targets) == batches + val_batches and max(targets) <= 1.0
-    # order: training batches (augmented), validation (clean), figure (augmented), probe (clean)
-    assert encoded == [True] * batches + [False] * val_batches + [True] + [False] * (batches + val_batches)
+    # order: training batches (augmented), validation (clean), figure (augmented), probe (clean),
+    # near-hole probe (clean; every frame of this set is near the hole)
+    assert encoded == ([True] * batches + [False] * val_batches + [True] + [False] * (batches + val_batches)
+                       + [False] * (batches + val_batches))
 
 
 # ----------------------------------------------------------------------------- resume

@@ -342,11 +342,38 @@ def test_image_set_round_trip_and_split(tmp_path):
     assert len(val_eps) == 2 and not val_eps & train_eps and len(ds.val_idx) == 12
     assert json.loads((d / "meta.json").read_text())["num_val_episodes"] == 2
     assert sorted(p.name for p in d.iterdir()) == sorted(["images.npy", "state.npy", "episode.npy", "split.npy",
-                                                          "meta.json"])
+                                                          "meta.json", "geometry.npy", "pixels.npy"])
+    assert not ds.has_geometry and np.isnan(ds.geometry).all()  # the writer was given none
+    # a format-1 set (before geometry.npy and pixels.npy) is still read, without them
+    meta = json.loads((d / "meta.json").read_text())
+    (d / "meta.json").write_text(json.dumps({**meta, "format": 1}))
+    for name in ("geometry.npy", "pixels.npy"):
+        (d / name).unlink()
+    old = ImageSet(d)
+    assert old.geometry is None and old.pixels is None and not old.has_geometry and len(old) == 60
     with pytest.raises(ValueError, match="resolution 8, requested 64"):
         ImageSet(d, resolution=64)
     with pytest.raises(ValueError, match="GearMesh"):
         ImageSet(d, task="GearMesh")
+
+
+def test_image_set_keeps_geometry_and_pixels(tmp_path):
+    g = np.random.default_rng(1)
+    n = 12
+    geometry = g.normal(size=(n, 13)).astype(np.float32)
+    pixels = g.normal(size=(n, 12)).astype(np.float32)
+    pixels[3, :6] = np.nan  # the fixed part out of view in frame 3
+    w = ImageSetWriter(tmp_path / "s", n, 8, "PegInsert", val_fraction=0.25)
+    images = np.zeros((n, 8, 8, 3), np.uint8)
+    with pytest.raises(ValueError, match="geometry must be finite"):
+        w.add(images[:2], np.zeros((2, 4)), np.arange(2), np.full((2, 13), np.nan), pixels[:2])
+    with pytest.raises(ValueError, match=r"pixels must be \(2, 12\)"):
+        w.add(images[:2], np.zeros((2, 4)), np.arange(2), geometry[:2], pixels[:2, :6])
+    w.add(images, np.zeros((n, 4)), np.arange(n), torch.from_numpy(geometry), pixels)
+    w.close()
+    ds = ImageSet(tmp_path / "s")
+    assert ds.has_geometry and np.array_equal(ds.geometry, geometry)
+    np.testing.assert_array_equal(ds.pixels, pixels)  # NaN where NaN was written
 
 
 def test_image_set_refuses_and_names_what_is_missing(tmp_path):
@@ -459,15 +486,55 @@ def test_presets_and_their_cache_names(tmp_path):
     """The thesis preset is Tables 5.5-5.6 with eq. 4.48 and GroupNorm as written; every setting
     in which a preset differs from it is in its cache directory's name, so a VAE trained with
     other settings is never picked up for it."""
+    from vkgrl_newton.vision.collect import collection_key
     from vkgrl_newton.vision.pipeline import VISION_PRESETS, VisionPreset, default_vae_dir
 
     thesis, quick = VISION_PRESETS["thesis"], VISION_PRESETS["quick"]
     assert (thesis.resolution, thesis.num_images, thesis.vae_epochs, thesis.vae_batch_size) == (256, 130_000, 400, 128)
     assert thesis.kl_weight == 1.0 and thesis.group_norm and thesis.vae_config().group_norm
-    assert default_vae_dir(tmp_path, "PegInsert", thesis) == tmp_path / "PegInsert" / "vae_v1_r256_n130000_e400_seed0"
-    assert default_vae_dir(tmp_path, "GearMesh", quick) == (
-        tmp_path / "GearMesh" / f"vae_v1_r64_n4096_e{quick.vae_epochs}_b32_kl0.01_nonorm_seed0")
-    assert quick.vae_config() == VAEConfig(resolution=64, group_norm=False)
+    assert (thesis.focal_length, thesis.camera_rpy_deg, thesis.samples_per_pixel) == (None, None, 1)  # Table 5.6
+    key = collection_key(thesis.collect_config("PegInsert"))
+    assert default_vae_dir(tmp_path, "PegInsert", thesis) == (
+        tmp_path / "PegInsert" / f"vae_v1_r256_n130000_e400_seed0_{key}")
+    assert default_vae_dir(tmp_path, "GearMesh", quick).name.startswith(
+        f"vae_v1_r{quick.resolution}_n{quick.num_images}_e{quick.vae_epochs}_b32_kl0.01_nonorm_seed0_")
+    assert quick.vae_config() == VAEConfig(resolution=quick.resolution, group_norm=False)
     names = {default_vae_dir(tmp_path, "PegInsert", VisionPreset(64, 4096, 10, **kw)).name
              for kw in ({}, {"vae_batch_size": 32}, {"kl_weight": 0.5}, {"group_norm": False}, {"seed": 1})}
     assert len(names) == 5
+
+
+def test_any_preset_or_collection_change_makes_a_new_cache_entry(tmp_path):
+    """Each field of VisionPreset and of CollectConfig (but the device), changed alone, names a new
+    image-set and VAE entry: an old cache entry is never reused for other settings."""
+    import dataclasses
+
+    from vkgrl_newton.vision.collect import CollectConfig, default_image_dir
+    from vkgrl_newton.vision.pipeline import VISION_PRESETS, default_vae_dir
+
+    other = {int: lambda v: v + 1, float: lambda v: v * 0.5 + 0.01, bool: lambda v: not v, str: None,
+             type(None): None}
+    quick = VISION_PRESETS["quick"]
+    changes = {"focal_length": 48.0, "camera_rpy_deg": (0.0, -29.0, 0.0), "samples_per_pixel": 4,
+               "val_fraction": 0.3}
+    base_vae = default_vae_dir(tmp_path, "PegInsert", quick)
+    for f in dataclasses.fields(quick):
+        v = getattr(quick, f.name)
+        new = changes.get(f.name, other[type(v)](v) if other.get(type(v)) else None)
+        if new == v or new is None:
+            new = changes[f.name]
+        changed = dataclasses.replace(quick, **{f.name: new})
+        assert default_vae_dir(tmp_path, "PegInsert", changed) != base_vae, f.name
+    cfg = CollectConfig()
+    base_images = default_image_dir(tmp_path, cfg)
+    collect_changes = {"task": "GearMesh", "family": "forge", "action_dim": 6, "episode_steps": 40,
+                       "focal_length": 48.0, "camera_rpy_deg": (0.0, -29.0, 0.0)}
+    for f in dataclasses.fields(cfg):
+        if f.name == "device":
+            assert default_image_dir(tmp_path, dataclasses.replace(cfg, device="cuda:0")) == base_images
+            continue
+        v = getattr(cfg, f.name)
+        new = collect_changes.get(f.name) or other[type(v)](v)
+        if f.name in ("scripted_fraction", "val_fraction"):
+            new = 0.25
+        assert default_image_dir(tmp_path, dataclasses.replace(cfg, **{f.name: new})) != base_images, f.name

@@ -59,6 +59,25 @@ def test_collect_images_end_to_end(peg_env, tmp_path):
     imgs = s.images[:].astype(np.float64)
     assert imgs.std() > 5.0  # a scene, not a blank frame
     assert np.abs(imgs[0] - imgs[8]).mean() > 0.5  # worlds moved between rounds
+    # the geometry beside each image, and the pixel measurements of a second (labelled) render:
+    # the fixed part's visible surface, back-projected through the depth image into the world,
+    # lies around its tip (the socket's walls: within ~2 cm), the held part's above its bottom
+    # point (the peg runs up into the gripper), and the image frame is a rotation
+    from vkgrl_newton.vision.probe import relative_in_image
+
+    assert s.has_geometry and s.pixels.shape == (30, 12)
+    g, p = s.geometry.astype(np.float64), s.pixels.astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(g[:, 9:13], axis=1), 1.0, atol=1e-6)
+    seen = np.isfinite(p[:, 0]) & np.isfinite(p[:, 6])
+    assert seen.mean() > 0.8 and (p[seen][:, [2, 8]] > 10).all()  # both parts cover some pixels
+    rot = Rotation.from_quat(g[seen, 9:13])
+    fixed_w = g[seen, 6:9] + rot.apply(p[seen, 3:6])
+    held_w = g[seen, 6:9] + rot.apply(p[seen, 9:12])
+    assert np.median(np.linalg.norm(fixed_w - g[seen, 3:6], axis=1)) < 0.02
+    rise = held_w - g[seen, 0:3]
+    assert np.all(rise[:, 2] > 0.005) and np.median(np.hypot(rise[:, 0], rise[:, 1])) < 0.01
+    np.testing.assert_allclose(np.linalg.norm(relative_in_image(g), axis=1),
+                               np.linalg.norm(g[:, 3:6] - g[:, 0:3], axis=1), rtol=1e-6)
     meta = json.loads((out / "meta.json").read_text())
     assert meta["action_dim"] == 6 and meta["num_envs"] == 4 and meta["camera"]["width"] == 32
     with pytest.raises(FileExistsError, match="not empty"):
@@ -74,3 +93,9 @@ def test_collect_config_errors():
         CollectConfig(frame_stride=0)
     with pytest.raises(ValueError, match="val_fraction"):
         CollectConfig(val_fraction=1.0)
+    with pytest.raises(ValueError, match="samples_per_pixel"):
+        CollectConfig(samples_per_pixel=0)
+    with pytest.raises(ValueError, match="focal_length"):
+        CollectConfig(focal_length=-1.0)
+    with pytest.raises(ValueError, match="task='Pegs'"):
+        CollectConfig(task="Pegs")

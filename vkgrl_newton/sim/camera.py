@@ -40,12 +40,24 @@ class CameraSpec:
     height: int = 256
     focal_length: float = 24.0  # mm (Isaac Lab's PinholeCameraCfg default)
     horizontal_aperture: float = 20.955  # mm
+    # rays per pixel; > 1 is Newton's multisample anti-aliasing (the pixel is its coverage-weighted
+    # mean colour: a sub-pixel move of an edge changes it, which one centred ray per pixel cannot)
+    samples_per_pixel: int = 1
 
     def __post_init__(self):
         for name in ("width", "height"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 8:
                 raise ValueError(f"CameraSpec.{name} must be an integer >= 8, got {v!r}")
+        if not (isinstance(self.samples_per_pixel, int) and 1 <= self.samples_per_pixel <= 64):
+            raise ValueError(f"CameraSpec.samples_per_pixel={self.samples_per_pixel!r}; allowed: an integer in [1, 64]")
+        for name in ("focal_length", "horizontal_aperture"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"CameraSpec.{name}={getattr(self, name)!r}; allowed: > 0 (mm)")
+
+    @property
+    def horizontal_fov_deg(self) -> float:
+        return math.degrees(2.0 * math.atan(0.5 * self.horizontal_aperture / self.focal_length))
 
 
 # Thesis Table 5.6. PegInsert's "roll -20" is applied as a 20 degree tilt of the optical axis
@@ -72,13 +84,18 @@ class TaskCamera:
     def __init__(self, model: newton.Model, spec: CameraSpec, num_worlds: int):
         self.model, self.spec, self.num_worlds = model, spec, num_worlds
         self.device = model.device
-        self.sensor = SensorCamera(model)
+        config = None
+        if spec.samples_per_pixel > 1:
+            config = SensorCamera.RenderConfig(anti_aliasing=SensorCamera.AntiAliasing.MSAA)
+        self.sensor = SensorCamera(model, default_render_config=config)
         self.sensor.create_default_light(enable_shadows=True)
         self.rays = SensorCamera.compute_camera_rays_pinhole(
             spec.width, spec.height, focal_length=spec.focal_length,
             horizontal_aperture=spec.horizontal_aperture,
-            vertical_aperture=spec.horizontal_aperture * spec.height / spec.width, device=self.device)
+            vertical_aperture=spec.horizontal_aperture * spec.height / spec.width,
+            sample_count=spec.samples_per_pixel, device=self.device)
         self.color = self.sensor.allocate_image_color(num_worlds, spec.width, spec.height)
+        self._labels = None  # shape-index and depth images, allocated on the first render_labelled
         roll, pitch, yaw = (math.radians(a) for a in spec.rpy_deg)
         q_opt = quat_from_euler_xyz(torch.tensor([roll]), torch.tensor([pitch]), torch.tensor([yaw]))
         self._q_mount = quat_mul(q_opt, torch.tensor([_OPTICAL_TO_NEWTON]))[0]  # hand -> Newton camera
@@ -92,11 +109,38 @@ class TaskCamera:
         pos = hand_pos_w + quat_rotate(hand_quat_w, p_mount)
         return torch.cat((pos, quat_mul(hand_quat_w, q_mount)), dim=-1)
 
-    def _render(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor) -> None:
+    def optical_poses_w(self, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor) -> torch.Tensor:
+        """(E, 7) the image's frame in the world: the camera position and the optical frame's
+        orientation (xyzw; +x image right, +y image down, +z forward along the optical axis)."""
+        pose = self.camera_poses_w(hand_pos_w, hand_quat_w)
+        q_back = torch.tensor([_OPTICAL_TO_NEWTON], dtype=pose.dtype, device=pose.device).expand(pose.shape[0], 4)
+        return torch.cat((pose[:, :3], quat_mul(pose[:, 3:], q_back)), dim=-1)  # pi about x is its own inverse
+
+    def _render(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor, **images) -> None:
         self.model.bvh_refit_shapes(state)  # bodies moved since the last render
         poses = self.camera_poses_w(hand_pos_w, hand_quat_w).detach().float().contiguous()
         tfs = wp.from_torch(poses, dtype=wp.transformf)  # (p, q xyzw) is Warp's transform layout
-        self.sensor.update(state, tfs, self.rays, color_image=self.color)
+        self.sensor.update(state, tfs, self.rays, color_image=self.color, **images)
+
+    def render_labelled(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """On the host: uint8 RGB (E, H, W, 3), the shape index seen at each pixel's centre
+        (E, H, W) uint32 (global model shape index), and the ray distance to it (E, H, W) float32, m.
+        For privileged pixel measurements (the vision probe's baseline), not for the policy."""
+        if self._labels is None:
+            w, h = self.spec.width, self.spec.height
+            self._labels = {"shape_index_image": self.sensor.allocate_image_shape_index(self.num_worlds, w, h),
+                            "depth_image": self.sensor.allocate_image_depth(self.num_worlds, w, h)}
+        self._render(state, hand_pos_w, hand_quat_w, **self._labels)
+        h, w = self.spec.height, self.spec.width
+        rgb = self.color.numpy().view(np.uint8).reshape(self.num_worlds, h, w, 4)[..., :3].copy()
+        return rgb, self._labels["shape_index_image"].numpy(), self._labels["depth_image"].numpy()
+
+    def ray_directions_optical(self) -> np.ndarray:
+        """(H, W, 3) float64 unit direction of each pixel's (first) ray in the optical frame."""
+        d = self.rays.numpy()[:, :, 0, 1].astype(np.float64)  # Newton camera frame: -Z forward, +Y up
+        d = d * np.array([1.0, -1.0, -1.0])
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     def render(self, state: newton.State, hand_pos_w: torch.Tensor, hand_quat_w: torch.Tensor) -> np.ndarray:
         """uint8 (E, H, W, 3) images on the host (a copy); world i is seen by camera i."""

@@ -13,7 +13,10 @@ Every `frame_stride` control steps all worlds render their hand camera (`sim.cam
 Table 5.6 pose, `resolution` x `resolution`) and the privileged state is stored beside the image:
 the fixed part's tip relative to the TCP, in the TCP frame (x, y, z, m), and the relative yaw
 (fixed yaw - TCP yaw, wrapped to [-pi, pi)). The VAE never sees it; the linear probe checks that
-the latent carries it (issue: R^2 >= 0.8 on x and y).
+the latent carries it. Beside it, for the near-hole probe (`vision.probe.near_hole_probe`): the
+geometry of the frame (held part, fixed tip, the image's frame in the world: `GEOMETRY_COLUMNS`)
+and privileged pixel measurements of both parts from a shape-index and a depth render of the
+same camera (`PIXEL_COLUMNS`: what the image itself allows, the probe's baseline).
 
 Episodes are numbered episode_round * num_envs + world, so the writer's train/validation split is
 by (world, episode): frames of one trajectory never straddle the split.
@@ -30,10 +33,13 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_rotate
-from .dataset import ImageSetWriter
+import numpy as np
 
-__all__ = ["CollectConfig", "collect_images", "default_image_dir", "relative_target_state"]
+from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_rotate
+from .dataset import IMAGESET_FORMAT, ImageSetWriter
+from .probe import part_pixel_features
+
+__all__ = ["CollectConfig", "collect_images", "default_image_dir", "relative_target_state", "collect_camera_spec"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,10 @@ class CollectConfig:
     val_fraction: float = 0.1
     seed: int = 0
     device: str = "cpu"
+    # the camera: Table 5.6's pose and lens (sim.camera.TASK_CAMERAS) unless overridden here
+    focal_length: float | None = None  # mm; None: Table 5.6's (Isaac Lab's 24 mm)
+    camera_rpy_deg: tuple[float, float, float] | None = None  # None: Table 5.6's mount angles
+    samples_per_pixel: int = 1  # > 1: multisample anti-aliasing
 
     def __post_init__(self) -> None:
         for name in ("num_images", "resolution", "num_envs", "frame_stride", "episode_steps"):
@@ -67,6 +77,22 @@ class CollectConfig:
         for name in ("noise_offset", "noise_step"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"CollectConfig.{name}={getattr(self, name)!r}; allowed: >= 0 (m)")
+        collect_camera_spec(self)  # the camera fields are checked by CameraSpec
+
+
+def collect_camera_spec(cfg: CollectConfig):
+    """The camera a collection renders with: its task's Table 5.6 camera at the config's resolution,
+    lens and sampling."""
+    from ..sim.camera import TASK_CAMERAS
+
+    if cfg.task not in TASK_CAMERAS:
+        raise ValueError(f"CollectConfig.task={cfg.task!r}; allowed: {sorted(TASK_CAMERAS)}")
+    base = TASK_CAMERAS[cfg.task]
+    return dataclasses.replace(base, width=cfg.resolution, height=cfg.resolution,
+                               focal_length=base.focal_length if cfg.focal_length is None else float(cfg.focal_length),
+                               samples_per_pixel=cfg.samples_per_pixel,
+                               rpy_deg=base.rpy_deg if cfg.camera_rpy_deg is None
+                               else tuple(float(a) for a in cfg.camera_rpy_deg))
 
 
 def relative_target_state(env) -> torch.Tensor:
@@ -92,14 +118,14 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
     """
     from ..envs.assembly_env import AssemblyEnv, EnvConfig
     from ..envs.scripted import ScriptedInserter
-    from ..sim.camera import TASK_CAMERAS, TaskCamera
+    from ..sim.camera import TaskCamera
 
     if env is not None:
         config = dataclasses.replace(config, task=env.cfg.task, family=env.cfg.family,
                                      action_dim=env.cfg.action_dim, num_envs=env.num_envs)
     cfg = config
     out_dir = Path(out_dir)
-    spec = dataclasses.replace(TASK_CAMERAS[cfg.task], width=cfg.resolution, height=cfg.resolution)
+    spec = collect_camera_spec(cfg)
     meta = {"source": "scripted demonstrator with command noise + uniform random actions",
             "family": cfg.family, "action_dim": cfg.action_dim, "num_envs": cfg.num_envs,
             "scripted_fraction": cfg.scripted_fraction, "frame_stride": cfg.frame_stride,
@@ -113,6 +139,8 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
                                     num_envs=cfg.num_envs, device=cfg.device, seed=cfg.seed))
     steps = min(cfg.episode_steps or env.max_episode_length, env.max_episode_length)
     camera = TaskCamera(env.model, spec, env.num_envs)
+    dirs = camera.ray_directions_optical()
+    fixed_ids, held_ids = part_shape_ids(env)
     demonstrator = ScriptedInserter(seed=cfg.seed)
     gen = torch.Generator(device=env.tdev).manual_seed(cfg.seed + 1)
     n, written, episode_round = env.num_envs, 0, 0
@@ -133,9 +161,13 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
                 if k % cfg.frame_stride == 0:
                     take = min(n, cfg.num_images - written)
                     hand_p, hand_q = env.hand_pose()
-                    images = camera.render(env.state_0, hand_p, hand_q)
+                    images, shape_index, depth = camera.render_labelled(env.state_0, hand_p, hand_q)
                     state = relative_target_state(env)
-                    writer.add(images[:take], state[:take], episode_ids[:take])
+                    geometry = torch.cat((env.held_pose()[0], env.fixed_tip_w, camera.optical_poses_w(hand_p, hand_q)),
+                                         dim=-1)
+                    pixels = np.concatenate((part_pixel_features(shape_index, depth, dirs, fixed_ids),
+                                             part_pixel_features(shape_index, depth, dirs, held_ids)), axis=1)
+                    writer.add(images[:take], state[:take], episode_ids[:take], geometry[:take], pixels[:take])
                     written += take
                     bar.update(take)
                 if scripted:
@@ -152,10 +184,34 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
     return out_dir
 
 
-def default_image_dir(cache_dir, task: str, resolution: int, num_images: int, seed: int = 0) -> Path:
-    """Where run.py caches a task's image set, keyed by the demonstrator's version (its scripted
-    rounds are part of the set: a changed demonstrator collects anew)."""
+def part_shape_ids(env) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per world, the global shape indices of the fixed part and of the held part."""
+    fixed = [np.asarray(row) for row in env.scene.socket_shapes.numpy()]
+    shape_body = env.model.shape_body.numpy()
+    held = [np.flatnonzero(shape_body == b) for b in env.scene.held_body.numpy()]
+    return fixed, held
+
+
+def collection_key(cfg: CollectConfig) -> str:
+    """A short hash of everything that makes an image set what it is: every CollectConfig field
+    but the device, the camera it renders with, the image-set format and the demonstrator's
+    version (its scripted rounds are part of the set)."""
+    import hashlib
+    import json
+
     from ..envs.scripted import DEMONSTRATOR_VERSION
 
-    return Path(cache_dir) / task / f"images_v{DEMONSTRATOR_VERSION}_r{resolution}_n{num_images}_seed{seed}"
+    fields = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "device"}
+    blob = {"config": fields, "camera": dataclasses.asdict(collect_camera_spec(cfg)), "format": IMAGESET_FORMAT,
+            "demonstrator": DEMONSTRATOR_VERSION}
+    return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:10]
+
+
+def default_image_dir(cache_dir, cfg: CollectConfig) -> Path:
+    """Where run.py caches a task's image set: the readable settings in the name, then
+    `collection_key` (any other setting that differs makes a new entry, never reuses an old one)."""
+    from ..envs.scripted import DEMONSTRATOR_VERSION
+
+    return Path(cache_dir) / cfg.task / (f"images_v{DEMONSTRATOR_VERSION}_r{cfg.resolution}_n{cfg.num_images}"
+                                         f"_seed{cfg.seed}_{collection_key(cfg)}")
 

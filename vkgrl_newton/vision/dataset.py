@@ -8,6 +8,12 @@ One directory per set:
                   relative target pose x, y, z, yaw of the fixed part in the TCP/target frame);
                   used only to probe the latent (`vision.probe`), never to train the VAE
     episode.npy   int32 (N,) episode id per image
+    geometry.npy  float32 (N, 13) the frame's geometry in the world (`GEOMETRY_COLUMNS`: held part,
+                  fixed tip, the image's frame), for the near-hole probe; NaN rows where the
+                  collector gave none (format 2; format-1 sets have no such file)
+    pixels.npy    float32 (N, 12) privileged pixel measurements of the fixed and the held part
+                  (`PIXEL_COLUMNS`, from shape-index and depth renders; NaN where a part is not
+                  in view or none were given), the near-hole probe's baseline (format 2)
     split.npy     uint8 (N,) 0 = train, 1 = validation, drawn per EPISODE: consecutive frames of
                   one episode are near-duplicates, and a split by frame would leak them into the
                   validation set
@@ -32,11 +38,19 @@ import torch
 
 from .._io import atomic_write, atomic_write_text
 
-__all__ = ["IMAGESET_FORMAT", "IMAGESET_FILES", "ImageSetWriter", "ImageSet", "STATE_DIM"]
+__all__ = ["IMAGESET_FORMAT", "IMAGESET_FILES", "ImageSetWriter", "ImageSet", "STATE_DIM", "GEOMETRY_COLUMNS",
+           "PIXEL_COLUMNS"]
 
-IMAGESET_FORMAT = 1
+IMAGESET_FORMAT = 2  # 2 added geometry.npy and pixels.npy; format 1 is still read (without them)
 STATE_DIM = 4  # x, y, z, yaw
+# world frame, m; the image's frame is the optical frame: +x image right, +y image down, +z forward
+GEOMETRY_COLUMNS = ("held_x", "held_y", "held_z", "fixed_tip_x", "fixed_tip_y", "fixed_tip_z",
+                    "camera_x", "camera_y", "camera_z", "camera_qx", "camera_qy", "camera_qz", "camera_qw")
+# per part: pixel centroid (u right, v down, px, pixel centres at +0.5), pixel count, and the mean
+# of its pixels' 3D points (depth x ray direction) in the optical frame, m
+PIXEL_COLUMNS = tuple(f"{part}_{k}" for part in ("fixed", "held") for k in ("u", "v", "count", "px", "py", "pz"))
 IMAGESET_FILES = ("images.npy", "state.npy", "episode.npy", "split.npy", "meta.json")
+_FORMAT2_FILES = ("geometry.npy", "pixels.npy")
 _PARTIAL = "images.npy.partial"
 _RESERVED = ("format", "task", "resolution", "count", "val_fraction", "seed", "num_episodes", "num_val_episodes",
              "num_train", "num_val")
@@ -82,12 +96,15 @@ class ImageSetWriter:
                                                  shape=(num_images, resolution, resolution, 3))
         self._state = np.zeros((num_images, STATE_DIM), np.float32)
         self._episode = np.zeros(num_images, np.int32)
+        self._geometry = np.full((num_images, len(GEOMETRY_COLUMNS)), np.nan, np.float32)
+        self._pixels = np.full((num_images, len(PIXEL_COLUMNS)), np.nan, np.float32)
         self.count = 0
         self.closed = False
 
-    def add(self, images, state, episode_ids) -> None:
-        """Append n images: uint8 (n, R, R, 3), state (n, 4), integer episode ids (n,);
-        numpy arrays or tensors."""
+    def add(self, images, state, episode_ids, geometry=None, pixels=None) -> None:
+        """Append n images: uint8 (n, R, R, 3), state (n, 4), integer episode ids (n,), and
+        optionally geometry (n, 13) (finite) and pixel measurements (n, 12) (NaN allowed: a part
+        out of view); numpy arrays or tensors."""
         if self.closed:
             raise RuntimeError(f"image set {self.out_dir} is closed")
         images, state, episode_ids = _numpy(images), _numpy(state), _numpy(episode_ids)
@@ -107,6 +124,17 @@ class ImageSetWriter:
         if self.count + n > self.num_images:
             raise ValueError(f"ImageSetWriter.add: {self.count} + {n} images exceed num_images={self.num_images}")
         sl = slice(self.count, self.count + n)
+        if geometry is not None:
+            geometry = _numpy(geometry)
+            if geometry.shape != (n, len(GEOMETRY_COLUMNS)) or not np.isfinite(geometry).all():
+                raise ValueError(f"ImageSetWriter.add: geometry must be finite ({n}, {len(GEOMETRY_COLUMNS)}), "
+                                 f"got {geometry.shape}")
+            self._geometry[sl] = geometry
+        if pixels is not None:
+            pixels = _numpy(pixels)
+            if pixels.shape != (n, len(PIXEL_COLUMNS)):
+                raise ValueError(f"ImageSetWriter.add: pixels must be ({n}, {len(PIXEL_COLUMNS)}), got {pixels.shape}")
+            self._pixels[sl] = pixels
         self._images[sl], self._state[sl], self._episode[sl] = images, state, episode_ids
         self.count += n
 
@@ -124,7 +152,8 @@ class ImageSetWriter:
         with open(partial, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(partial, self.out_dir / "images.npy")
-        for name, arr in (("state.npy", self._state), ("episode.npy", self._episode), ("split.npy", split)):
+        for name, arr in (("state.npy", self._state), ("episode.npy", self._episode), ("split.npy", split),
+                          ("geometry.npy", self._geometry), ("pixels.npy", self._pixels)):
             atomic_write(self.out_dir / name, False, lambda f, a=arr: np.save(f, a), suffix=".tmp.npy")
         self.meta.update(num_episodes=n_ep, num_val_episodes=n_val_ep, num_train=int((split == 0).sum()),
                          num_val=int((split == 1).sum()))
@@ -154,6 +183,14 @@ class ImageSetWriter:
             self.close()
 
 
+def _peek_format(d: Path):
+    """meta.json's format, or None when it cannot be read (the full check follows in ImageSet)."""
+    try:
+        return json.loads((d / "meta.json").read_text()).get("format")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 class ImageSet:
     """A finished image set, read back; `images` stays on disk (memmap), the rest is loaded.
 
@@ -164,7 +201,8 @@ class ImageSet:
         self.dir = d = Path(directory)
         if not d.is_dir():
             raise FileNotFoundError(f"image set directory {d} does not exist; collect one with ImageSetWriter")
-        missing = [f for f in IMAGESET_FILES if not (d / f).is_file()]
+        fmt_files = IMAGESET_FILES + (_FORMAT2_FILES if _peek_format(d) != 1 else ())
+        missing = [f for f in fmt_files if not (d / f).is_file()]
         if missing:
             why = " (the writer did not finish: images.npy.partial is there)" if (d / _PARTIAL).exists() else ""
             raise FileNotFoundError(f"image set {d} is incomplete: missing {', '.join(missing)}{why}")
@@ -174,15 +212,22 @@ class ImageSet:
             self.state = np.load(d / "state.npy")
             self.episode = np.load(d / "episode.npy")
             self.split = np.load(d / "split.npy")
+            self.geometry = self.pixels = None  # format 1: not collected
+            if (d / "geometry.npy").is_file():
+                self.geometry = np.load(d / "geometry.npy")
+                self.pixels = np.load(d / "pixels.npy")
         except (OSError, ValueError, EOFError) as e:  # json.JSONDecodeError is a ValueError
             raise ValueError(f"image set {d} has a damaged file ({type(e).__name__}: {e})") from None
         fmt = self.meta.get("format") if isinstance(self.meta, dict) else None
-        if fmt != IMAGESET_FORMAT:
-            raise ValueError(f"image set {d}: meta.json has format {fmt!r}, this code reads {IMAGESET_FORMAT}")
+        if fmt not in (1, IMAGESET_FORMAT):
+            raise ValueError(f"image set {d}: meta.json has format {fmt!r}, this code reads 1 and {IMAGESET_FORMAT}")
         n, r = self.meta["count"], self.meta["resolution"]
         expected = {"images.npy": (self.images, np.uint8, (n, r, r, 3)),
                     "state.npy": (self.state, np.float32, (n, STATE_DIM)),
                     "episode.npy": (self.episode, np.int32, (n,)), "split.npy": (self.split, np.uint8, (n,))}
+        if self.geometry is not None:
+            expected["geometry.npy"] = (self.geometry, np.float32, (n, len(GEOMETRY_COLUMNS)))
+            expected["pixels.npy"] = (self.pixels, np.float32, (n, len(PIXEL_COLUMNS)))
         for name, (arr, dtype, shape) in expected.items():
             if arr.dtype != dtype or arr.shape != shape:
                 raise ValueError(f"image set {d}: {name} is {arr.dtype} {arr.shape}, "
@@ -195,6 +240,11 @@ class ImageSet:
             raise ValueError(f"image set {d} is of task {self.meta['task']!r}, requested {task!r}")
         self.train_idx = np.flatnonzero(self.split == 0)
         self.val_idx = np.flatnonzero(self.split == 1)
+
+    @property
+    def has_geometry(self) -> bool:
+        """Every image has its frame's geometry (a format-2 set whose collector gave it)."""
+        return self.geometry is not None and bool(np.isfinite(self.geometry).all())
 
     @property
     def resolution(self) -> int:

@@ -2,11 +2,12 @@
 
     encoder, info = load_or_make_encoder("PegInsert", VISION_PRESETS["quick"], "runs/cache", "cpu")
 
-1. the image set (`vision.collect`): cache/<task>/images_v<demonstrator version>_r<R>_n<N>_seed<S>/,
-   collected into a temporary sibling directory and renamed when complete, so an interrupted
+1. the image set (`vision.collect`): cache/<task>/images_v<demonstrator version>_r<R>_n<N>_seed<S>_<key>/
+   (<key>: a hash of every collection setting and the camera, `collect.collection_key`), collected into a temporary sibling directory and renamed when complete, so an interrupted
    collection leaves no half set under the final name (a stale temporary directory of ours is
    removed and redone);
-2. the VAE (`vision.train`): cache/<task>/vae_v<version>_r<R>_n<N>_e<E>_seed<S>/vae.pt; a VAE run that was
+2. the VAE (`vision.train`): cache/<task>/vae_v<version>_r<R>_n<N>_e<E>[...]_seed<S>_<key>/vae.pt (the
+   image set's key: a VAE of other images is never taken for this one); a VAE run that was
    interrupted after its first epoch (checkpoints/last.pt but no metrics.json) is resumed, one
    stopped inside its first epoch restarted;
 3. the frozen encoder (`FrozenEncoder`) of that vae.pt, checked against task and resolution.
@@ -37,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..cache import entry_lock
-from .collect import CollectConfig, collect_images, default_image_dir
+from .collect import CollectConfig, collect_images, collection_key, default_image_dir
 from .train import train_vae
 from .vae import FrozenEncoder, VAEConfig, load_vae
 
@@ -53,9 +54,22 @@ class VisionPreset:
     kl_weight: float = 1.0  # eq. 4.48 as written
     group_norm: bool = True  # 5.6.1
     seed: int = 0
+    # the image set's camera and sampling (None / 1 / 0.1: Table 5.6 and the collector's defaults)
+    focal_length: float | None = None
+    camera_rpy_deg: tuple[float, float, float] | None = None
+    samples_per_pixel: int = 1
+    val_fraction: float = 0.1
 
     def vae_config(self) -> VAEConfig:
         return VAEConfig(resolution=self.resolution, group_norm=self.group_norm)
+
+    def collect_config(self, task: str, num_envs: int = 16, device: str = "cpu") -> CollectConfig:
+        """The image set's collection (16 worlds whatever the run's world count: the set does not
+        depend on it)."""
+        return CollectConfig(task=task, num_images=self.num_images, resolution=self.resolution, num_envs=num_envs,
+                             seed=self.seed, device=device, focal_length=self.focal_length,
+                             camera_rpy_deg=self.camera_rpy_deg, samples_per_pixel=self.samples_per_pixel,
+                             val_fraction=self.val_fraction)
 
 
 VISION_PRESETS = {
@@ -65,9 +79,10 @@ VISION_PRESETS = {
 }
 
 
-def default_vae_dir(cache_dir, task: str, preset: VisionPreset) -> Path:
-    """cache/<task>/vae_r<R>_n<N>_e<E>[_b<B>][_kl<w>][_nonorm]_seed<S>: the settings that differ from
-    the thesis's are in the name, so a VAE trained with other settings is never taken for it."""
+def default_vae_dir(cache_dir, task: str, preset: VisionPreset, num_envs: int = 16) -> Path:
+    """cache/<task>/vae_v<D>_r<R>_n<N>_e<E>[_b<B>][_kl<w>][_nonorm]_seed<S>_<image key>: the VAE settings
+    that differ from the thesis's are in the name, then the image set's key, so a VAE trained with
+    other settings or on other images is never taken for it."""
     from ..envs.scripted import DEMONSTRATOR_VERSION  # the image set's key (collect.default_image_dir)
 
     name = f"vae_v{DEMONSTRATOR_VERSION}_r{preset.resolution}_n{preset.num_images}_e{preset.vae_epochs}"
@@ -77,16 +92,17 @@ def default_vae_dir(cache_dir, task: str, preset: VisionPreset) -> Path:
         name += f"_kl{preset.kl_weight:g}"
     if not preset.group_norm:
         name += "_nonorm"
-    return Path(cache_dir) / task / f"{name}_seed{preset.seed}"
+    return Path(cache_dir) / task / f"{name}_seed{preset.seed}_{collection_key(preset.collect_config(task, num_envs))}"
 
 
 def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str, vae_path=None,
                          num_envs: int = 16, log=print, progress: bool = True) -> tuple[FrozenEncoder, dict]:
     """The frozen encoder for `task` and what it came from ({"vae": path, "resolution", "latent_dim"})."""
     if vae_path is not None:
-        vae, _ = load_vae(vae_path, expect={"task": task}, map_location=device)
+        vae, payload = load_vae(vae_path, expect={"task": task}, map_location=device)
     else:
-        image_dir = default_image_dir(cache_dir, task, preset.resolution, preset.num_images, preset.seed)
+        collect_config = preset.collect_config(task, num_envs, device)
+        image_dir = default_image_dir(cache_dir, collect_config)
         with entry_lock(image_dir, log=log, what=f"the {task} image set"):
             if not (image_dir / "meta.json").is_file():
                 if image_dir.exists():
@@ -96,11 +112,9 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
                 if tmp.exists():  # our own interrupted collection (the lock says no run is at it now)
                     shutil.rmtree(tmp)
                 log(f"collecting {preset.num_images} task-camera images ({preset.resolution} px) -> {image_dir}")
-                collect_images(CollectConfig(task=task, num_images=preset.num_images, resolution=preset.resolution,
-                                             num_envs=num_envs, seed=preset.seed, device=device),
-                               tmp, progress=progress, log=log)
+                collect_images(collect_config, tmp, progress=progress, log=log)
                 tmp.rename(image_dir)
-        vae_dir = default_vae_dir(cache_dir, task, preset)
+        vae_dir = default_vae_dir(cache_dir, task, preset, num_envs)
         vae_path = vae_dir / "vae.pt"
         with entry_lock(vae_dir, log=log, what=f"the {task} VAE"):
             if not (vae_dir / "metrics.json").is_file():
@@ -111,8 +125,8 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
                 train_vae(image_dir, vae_dir, epochs=preset.vae_epochs, batch_size=preset.vae_batch_size,
                           kl_weight=preset.kl_weight, config=preset.vae_config(), seed=preset.seed, device=device,
                           resume=resume, progress=progress, log=log)
-        vae, _ = load_vae(vae_path, expect={"task": task, "resolution": preset.resolution}, map_location=device)
+        vae, payload = load_vae(vae_path, expect={"task": task, "resolution": preset.resolution}, map_location=device)
         log(f"VAE loaded: {vae_path}")
-    encoder = FrozenEncoder(vae)
+    encoder = FrozenEncoder(vae, camera=payload["meta"].get("camera"))
     return encoder, {"vae": str(vae_path), "resolution": encoder.config.resolution,
                      "latent_dim": encoder.latent_dim}

@@ -1,4 +1,15 @@
-"""Linear probe of a visual latent: how much of the privileged state is linearly readable from it.
+"""Probes of a visual latent: how much of the privileged state is readable from it.
+
+Two probes. `linear_probe`, over the whole image set: R^2 of the relative target pose. And
+`near_hole_probe`, the one that matters for the policy: on the frames where the held part is
+within 1 cm (xy) of the fixed part and less than 2 cm above it (`near_hole_mask`), the fixed
+tip's position relative to the held part in the image's frame (`relative_in_image`), predicted
+from the latent by an affine map and by a small MLP, as RMSE in mm per axis, next to the 1 mm
+observation noise the latent must correct (thesis eq. 5.23) and next to a privileged pixel
+baseline: the same regressions from the two parts' pixel centroids, pixel counts and mean 3D
+points (shape-index and depth renders, `part_pixel_features`): what the image itself allows.
+
+The whole-range probe:
 
 Not in the thesis, which judges the VAE by its reconstructions and the RL results; here it is
 the check that the encoder mean (eq. 4.49) carries the relative target pose the policy needs.
@@ -17,7 +28,12 @@ import numpy as np
 from sklearn.linear_model import LinearRegression, Ridge
 from sklearn.metrics import r2_score
 
-__all__ = ["linear_probe"]
+__all__ = ["linear_probe", "near_hole_mask", "relative_in_image", "part_pixel_features", "regression_rmse",
+           "near_hole_probe", "NEAR_HOLE_XY", "NEAR_HOLE_HEIGHT", "PROBE_AXES"]
+
+NEAR_HOLE_XY = 0.01  # m: the held part within this horizontal distance of the fixed tip ...
+NEAR_HOLE_HEIGHT = 0.02  # m: ... and less than this above it (in contact or inside: below 0)
+PROBE_AXES = ("x", "y", "z")  # of the image's frame: +x right, +y down, +z along the optical axis
 
 
 def _as_2d(a, name: str) -> np.ndarray:
@@ -61,3 +77,134 @@ def _r2(y: np.ndarray, y_hat: np.ndarray) -> np.ndarray:
     """Per column; nan for a constant column (R^2 undefined there)."""
     r2 = r2_score(y, y_hat, multioutput="raw_values", force_finite=False)
     return np.where(np.isfinite(r2), r2, np.nan)
+
+
+# ----------------------------------------------------------------------------- the near-hole probe
+def near_hole_mask(geometry, xy_radius: float = NEAR_HOLE_XY, max_height: float = NEAR_HOLE_HEIGHT) -> np.ndarray:
+    """(n,) bool: frames whose held part (its reference point: the bottom that must reach the hole)
+    is strictly within `xy_radius` of the fixed tip horizontally and strictly less than
+    `max_height` above it. `geometry`: (n, 13) as `vision.dataset.GEOMETRY_COLUMNS`, world frame."""
+    g = np.asarray(geometry, dtype=np.float64)
+    d = g[:, 0:3] - g[:, 3:6]
+    return (np.hypot(d[:, 0], d[:, 1]) < xy_radius) & (d[:, 2] < max_height)
+
+
+def _rotate_inverse(q_xyzw: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """R(q)^T v for unit quaternions (n, 4) xyzw and vectors (n, 3), float64."""
+    u, w = -q_xyzw[:, :3], q_xyzw[:, 3:4]  # the conjugate
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def relative_in_image(geometry) -> np.ndarray:
+    """(n, 3) float64, m: the fixed tip minus the held part's reference point, in the image's
+    (optical) frame of each frame's camera."""
+    g = np.asarray(geometry, dtype=np.float64)
+    q = g[:, 9:13] / np.linalg.norm(g[:, 9:13], axis=1, keepdims=True)
+    return _rotate_inverse(q, g[:, 3:6] - g[:, 0:3])
+
+
+def part_pixel_features(shape_index: np.ndarray, depth: np.ndarray, ray_dirs: np.ndarray, part_ids) -> np.ndarray:
+    """(E, 6) float32 per world: the part's pixel centroid (u right, v down, px; pixel centres at
+    k + 0.5), its pixel count, and the mean of its pixels' 3D points depth x direction in the
+    optical frame (m). NaN (count 0) where the part is not in view.
+
+    shape_index (E, H, W) integer and depth (E, H, W) ray distance, as `TaskCamera.render_labelled`;
+    ray_dirs (H, W, 3) unit directions in the optical frame; part_ids[w]: the shape indices of the
+    part in world w."""
+    n, h, w = shape_index.shape
+    out = np.full((n, 6), np.nan, np.float32)
+    vv, uu = np.mgrid[0:h, 0:w]
+    for e in range(n):
+        mask = np.isin(shape_index[e], np.asarray(part_ids[e]))
+        count = int(mask.sum())
+        out[e, 2] = count
+        if count:
+            pts = depth[e][mask].astype(np.float64)[:, None] * ray_dirs[mask]
+            out[e, :2] = uu[mask].mean() + 0.5, vv[mask].mean() + 0.5
+            out[e, 3:] = pts.mean(axis=0)
+    return out
+
+
+def regression_rmse(x_train, y_train, x_val, y_val, model: str = "linear", seed: int = 0) -> np.ndarray:
+    """Fit y ~ f(x) on the training rows, (k,) RMSE per target column on the validation rows.
+
+    model "linear": an affine map (inputs standardized, ridge 1e-6 against the mean squared error,
+    only so that collinear inputs stay solvable); "mlp": scikit-learn's MLPRegressor, two hidden
+    layers of 64 ReLU units on standardized inputs and targets, Adam, L2 1e-4, early stopping on
+    a 10 % split of the training rows. Computed in float64."""
+    from sklearn.compose import TransformedTargetRegressor
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    xt, yt = _as_2d(x_train, "x_train"), _as_2d(y_train, "y_train")
+    xv, yv = _as_2d(x_val, "x_val"), _as_2d(y_val, "y_val")
+    if xt.shape[0] != yt.shape[0] or xv.shape[0] != yv.shape[0] or xt.shape[1] != xv.shape[1]:
+        raise ValueError(f"regression_rmse: shapes do not fit: x_train {xt.shape}, y_train {yt.shape}, "
+                         f"x_val {xv.shape}, y_val {yv.shape}")
+    if model == "linear":
+        reg = make_pipeline(StandardScaler(), Ridge(alpha=1e-6 * xt.shape[0]))
+    elif model == "mlp":
+        if xt.shape[0] < 20:
+            raise ValueError(f"regression_rmse: model 'mlp' needs at least 20 training rows, got {xt.shape[0]}")
+        mlp = MLPRegressor(hidden_layer_sizes=(64, 64), alpha=1e-4, learning_rate_init=1e-3, max_iter=2000,
+                           early_stopping=True, validation_fraction=0.1, n_iter_no_change=50, random_state=seed)
+        reg = TransformedTargetRegressor(regressor=make_pipeline(StandardScaler(), mlp), transformer=StandardScaler())
+    else:
+        raise ValueError(f"regression_rmse: model={model!r}; allowed: 'linear', 'mlp'")
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # max_iter is a budget here, not an error
+        reg.fit(xt, yt if yt.shape[1] > 1 else yt[:, 0])
+    pred = np.asarray(reg.predict(xv), dtype=np.float64).reshape(yv.shape)
+    return np.sqrt(((pred - yv) ** 2).mean(axis=0))
+
+
+def near_hole_probe(latent_train, geometry_train, latent_val, geometry_val, pixels_train=None, pixels_val=None,
+                    seed: int = 0, min_images: int = 20) -> dict:
+    """The near-hole probe: fit on the near-hole training frames, RMSE (mm per image axis) on the
+    near-hole validation frames, of the fixed tip relative to the held part in the image's frame.
+
+    Returns {"latent_linear_rmse_mm": {x, y, z}, "latent_mlp_rmse_mm": {...}, "pixel_baseline_rmse_mm":
+    {...} (the MLP on the pixel measurements; None without them), "pixel_baseline_linear_rmse_mm",
+    "mean_predictor_rmse_mm" (predicting the training mean: what no information gives),
+    "observation_noise_mm" 1.0 (Factory's per-axis noise on the fixed part's position), "num_images"
+    (validation frames scored), "num_fit", "pixel_baseline_num_images" (validation frames with both
+    parts in view, where the baseline is scored), and the selection's definition}. With fewer than
+    `min_images` near-hole frames in either split the RMSEs are None and "skipped" says why."""
+    from ..envs.assembly_env import TARGET_OBS_NOISE
+
+    zt, zv = _as_2d(latent_train, "latent_train"), _as_2d(latent_val, "latent_val")
+    gt, gv = np.asarray(geometry_train, np.float64), np.asarray(geometry_val, np.float64)
+    mt, mv = near_hole_mask(gt), near_hole_mask(gv)
+    out: dict = {"selection": f"held part within {NEAR_HOLE_XY * 1e3:g} mm (xy) of the fixed tip and less than "
+                              f"{NEAR_HOLE_HEIGHT * 1e3:g} mm above it",
+                 "target": "fixed tip minus held part, image frame (x right, y down, z optical axis)",
+                 "observation_noise_mm": TARGET_OBS_NOISE * 1e3, "num_images": int(mv.sum()), "num_fit": int(mt.sum()),
+                 "latent_linear_rmse_mm": None, "latent_mlp_rmse_mm": None, "pixel_baseline_rmse_mm": None,
+                 "pixel_baseline_linear_rmse_mm": None, "mean_predictor_rmse_mm": None,
+                 "pixel_baseline_num_images": 0}
+    if mt.sum() < min_images or mv.sum() < min_images:
+        out["skipped"] = (f"{int(mt.sum())} training and {int(mv.sum())} validation near-hole frames; "
+                          f"the probe needs at least {min_images} of each")
+        return out
+    yt, yv = relative_in_image(gt[mt]), relative_in_image(gv[mv])
+
+    def mm(rmse: np.ndarray) -> dict:
+        return {a: float(v * 1e3) for a, v in zip(PROBE_AXES, rmse)}
+
+    out["mean_predictor_rmse_mm"] = mm(np.sqrt(((yv - yt.mean(axis=0)) ** 2).mean(axis=0)))
+    out["latent_linear_rmse_mm"] = mm(regression_rmse(zt[mt], yt, zv[mv], yv, "linear"))
+    out["latent_mlp_rmse_mm"] = mm(regression_rmse(zt[mt], yt, zv[mv], yv, "mlp", seed))
+    if pixels_train is not None and pixels_val is not None:
+        pt, pv = np.asarray(pixels_train, np.float64)[mt], np.asarray(pixels_val, np.float64)[mv]
+        ft, fv = np.isfinite(pt).all(axis=1), np.isfinite(pv).all(axis=1)
+        out["pixel_baseline_num_images"] = int(fv.sum())
+        if ft.sum() >= min_images and fv.sum() >= min_images:
+            out["pixel_baseline_rmse_mm"] = mm(regression_rmse(pt[ft], yt[ft], pv[fv], yv[fv], "mlp", seed))
+            out["pixel_baseline_linear_rmse_mm"] = mm(regression_rmse(pt[ft], yt[ft], pv[fv], yv[fv], "linear"))
+    return out

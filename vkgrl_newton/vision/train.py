@@ -58,7 +58,11 @@ Linear probe (`vision.probe`): the encoder means of clean images of vae.pt, fitt
 train split (at most PROBE_MAX_TRAIN images, evenly spaced) and scored on the whole validation
 split against the privileged relative target pose x, y, z, cos(yaw), sin(yaw): R^2 per
 component as r2_x, r2_y, r2_z, r2_cos_yaw, r2_sin_yaw (null where a component is constant on
-the validation split and R^2 is undefined).
+the validation split and R^2 is undefined). Near-hole probe (`vision.probe.near_hole_probe`, in
+metrics.json as probe_near_hole): on the frames of both splits where the held part is near the
+hole, RMSE in mm per image axis of the fixed tip relative to the held part, from the latent
+(affine and MLP) and from the privileged pixel measurements; null for an image set collected
+without geometry (format 1).
 
 A directory that is not empty is never trained into without `resume=True` (FileExistsError);
 figures and metrics.json are the run's own files and are rewritten when a resumed run ends.
@@ -80,7 +84,7 @@ from tqdm import tqdm
 from .._io import atomic_write, atomic_write_text, check_meta
 from .augment import augment
 from .dataset import ImageSet
-from .probe import linear_probe
+from .probe import PROBE_AXES, near_hole_mask, near_hole_probe, linear_probe
 from .vae import DenoisingVAE, VAEConfig, load_vae, save_vae, to_float_images, vae_loss
 
 __all__ = ["train_vae", "LOSS_KEYS", "PROBE_TARGETS", "PROBE_MAX_TRAIN", "NUM_FIGURE_IMAGES"]
@@ -135,7 +139,7 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
     meta = {"task": images.task, "image_dir": str(images.dir.resolve()), "image_count": len(images),
             "num_train": len(train_idx), "num_val": len(val_idx), "batch_size": batch_size, "lr": lr, "seed": seed,
             "resolution": config.resolution, "latent_dim": config.latent_dim, "kl_warmup_epochs": int(kl_warmup_epochs),
-            "kl_weight": float(kl_weight)}
+            "kl_weight": float(kl_weight), "camera": images.meta.get("camera")}
 
     out = Path(out_dir)
     ckpt_path, best_path = out / CHECKPOINT, out / BEST
@@ -244,6 +248,7 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
               _plot_reconstructions(best_vae, images.images, figure_idx, torch.Generator(device).manual_seed(s_figure),
                                     device, best["epoch"]))
     probe = _probe(best_vae, images, batch_size, device)
+    probe_near = _probe_near_hole(best_vae, images, batch_size, device, seed)
     final = {split: {k: history[f"{split}/{k}"][-1] for k in LOSS_KEYS} for split in ("train", "val")}
     best_val = {k: history[f"val/{k}"][best["epoch"] - 1] for k in LOSS_KEYS}
     metrics = {
@@ -254,14 +259,31 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
         "final_train": final["train"], "final_val": final["val"], "best_epoch": best["epoch"], "best_val": best_val,
         "wall_s": timing["wall_s"], "train_s": timing["train_s"],
         "images_per_s": timing["train_images"] / max(timing["train_s"], 1e-9),  # training passes only
-        "probe": probe,
+        "probe": probe, "probe_near_hole": probe_near,
         "files": {"vae": str(best_path), "checkpoint": str(ckpt_path), "loss_curves": str(out / "loss_curves.png"),
                   "reconstructions": str(out / "reconstructions.png"), "tensorboard": str(out / "tb")},
     }
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n", overwrite=True)
     log(f"done: best validation loss {best['loss']:.5g} at epoch {best['epoch']} -> {best_path}; "
         "validation probe R^2 " + ", ".join(f"{k}={_fmt(probe['r2_' + k])}" for k in PROBE_TARGETS))
+    log(describe_near_hole_probe(probe_near))
     return metrics
+
+
+def describe_near_hole_probe(p: dict | None) -> str:
+    """One line of the near-hole probe for a log."""
+    if p is None:
+        return "near-hole probe: not measured (the image set has no geometry: collected before format 2)"
+    if p.get("skipped"):
+        return f"near-hole probe: skipped ({p['skipped']})"
+
+    def xyz(d):
+        return "n/a" if d is None else " / ".join(f"{d[a]:.2f}" for a in PROBE_AXES)
+
+    return (f"near-hole probe, RMSE mm x / y / z on {p['num_images']} held-out frames (noise "
+            f"{p['observation_noise_mm']:g} mm per axis): latent linear {xyz(p['latent_linear_rmse_mm'])}, "
+            f"latent MLP {xyz(p['latent_mlp_rmse_mm'])}, pixel baseline {xyz(p['pixel_baseline_rmse_mm'])}, "
+            f"mean predictor {xyz(p['mean_predictor_rmse_mm'])}")
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -272,6 +294,7 @@ def _check_resume(payload: dict, meta: dict, config: VAEConfig, device: torch.de
     saved = {k: v for k, v in payload["meta"].items() if k != "image_dir"}
     saved.setdefault("kl_warmup_epochs", 0)  # written before these options existed
     saved.setdefault("kl_weight", 1.0)
+    saved.setdefault("camera", None)
     check_meta(saved, {k: v for k, v in meta.items() if k != "image_dir"}, path)
     saved_config = {"group_norm": True, **payload["config"]}  # written before group_norm existed: it had GroupNorm
     if saved_config != dataclasses.asdict(config):
@@ -329,6 +352,18 @@ def _probe(vae: DenoisingVAE, images: ImageSet, batch_size: int, device) -> dict
     out.update({f"r2_{name}": _finite(r) for name, r in zip(PROBE_TARGETS, fit["r2"])})
     out.update({f"r2_train_{name}": _finite(r) for name, r in zip(PROBE_TARGETS, fit["r2_train"])})
     return out
+
+
+def _probe_near_hole(vae: DenoisingVAE, images: ImageSet, batch_size: int, device, seed: int) -> dict | None:
+    """The near-hole probe on every near-hole frame of the train (fit) and validation (score) splits."""
+    if not images.has_geometry:
+        return None
+    near = near_hole_mask(images.geometry)
+    tr, va = images.train_idx[near[images.train_idx]], images.val_idx[near[images.val_idx]]
+    enc = {name: _encode(vae, images.images, idx, batch_size, device) if len(idx) else np.zeros((0, vae.config.latent_dim))
+           for name, idx in (("train", tr), ("val", va))}
+    return near_hole_probe(enc["train"], images.geometry[tr], enc["val"], images.geometry[va],
+                           images.pixels[tr], images.pixels[va], seed=seed)
 
 
 def _finite(v: float) -> float | None:

@@ -219,12 +219,15 @@ class FrozenEncoder(nn.Module):
 
     Holds a copy of the encoder and the mu head, so that training the VAE further (or anything
     else) cannot move it. Always in eval mode: `train()` is a no-op, so a policy that switches
-    its modules to training leaves this one as it is.
+    its modules to training leaves this one as it is. `camera`: the camera its images came from
+    (sim.camera.CameraSpec's fields, from the image set through the VAE's meta); None for a VAE
+    written before it was recorded, which saw Table 5.6's camera at its resolution.
     """
 
-    def __init__(self, vae: DenoisingVAE) -> None:
+    def __init__(self, vae: DenoisingVAE, camera: dict | None = None) -> None:
         super().__init__()
         self.config = vae.config
+        self.camera = None if camera is None else dict(camera)
         self.encoder = copy.deepcopy(vae.encoder)
         self.fc_mu = copy.deepcopy(vae.fc_mu)
         self.requires_grad_(False)
