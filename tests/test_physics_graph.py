@@ -150,6 +150,17 @@ def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
         throughput.main(["--graph", "sometimes"])
     with pytest.raises(SystemExit):  # the graph's recording would be timed
         throughput.main(["--warmup", "1", "--json", str(tmp_path / "u.json")])
+    # with the task camera and an encoder: the eager split has a vision stage, and it is not
+    # also counted as "python" (the split sums to the profiled step)
+    out = tmp_path / "v.json"
+    assert throughput.main(["--num-worlds", "1", "--steps", "1", "--warmup", "0", "--device", "cpu", "--graph", "off",
+                            "--vision", "quick", "--json", str(out)]) == 0
+    (r,) = json.loads(out.read_text())["results"]
+    split = r["split_ms_per_env_step"]
+    assert r["vision"] == "quick" and split["vision"] > 0
+    assert sum(split.values()) == pytest.approx(r["profiled_ms_per_env_step"], rel=1e-9)
+    with pytest.raises(SystemExit):
+        throughput.main(["--vision", "blurry", "--json", str(tmp_path / "w.json")])
 
 
 def test_collision_once_per_physics_step(wp_cpu):

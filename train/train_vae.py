@@ -5,12 +5,14 @@
     python train/train_vae.py --images runs/images/PegInsert_r256 --out runs/vae/peg --resume
     python train/train_vae.py --images runs/images/PegInsert_r64 --device cpu --epochs 40 \
         --batch-size 32 --kl-weight 0.01 --no-group-norm        # the quick preset's CPU settings
+    python train/train_vae.py --images DIR --probe-only runs/vae/peg/vae.pt   # probes only, as JSON
 
 Thesis settings by default: Adam lr 1e-3, batch 128, 400 epochs, the Table 5.5 augmentations on
 the encoder input. The run directory (default runs/vae/<task>_r<resolution>_<date-time>) holds
 vae.pt (the best weights by validation loss, which the RL side loads), checkpoints/last.pt
 (written every epoch; --resume continues from it), tb/ (tensorboard), loss_curves.png,
-reconstructions.png and metrics.json (losses, throughput and a linear probe of the latent);
+reconstructions.png and metrics.json (losses, throughput, the whole-range linear probe of the
+latent and the near-hole probe: RMSE in mm of where the hole is, vision/probe.py);
 vkgrl_newton/vision/train.py describes each. A directory that already holds a run is never
 reused without --resume. On --resume, --batch-size, --lr, --seed, --channels, --kl-weight,
 --no-group-norm, --epochs and --device default to the run's own; --epochs may be raised.
@@ -65,6 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="no GroupNorm layers (the quick preset's CPU setting; default: GroupNorm(8) as 5.6.1)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from checkpoints/last.pt")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--probe-only", type=Path, default=None, metavar="VAE_PT",
+                    help="train nothing: print both probes of this vae.pt on --images as JSON (writes no file)")
     return ap
 
 
@@ -99,6 +103,18 @@ def main(argv=None) -> int:
         images = ImageSet(args.images)
     except (FileNotFoundError, ValueError) as e:
         ap.error(f"--images: {e}")
+    if args.probe_only is not None:
+        import json
+
+        from vkgrl_newton.vision.train import describe_near_hole_probe, probe_vae
+
+        try:
+            probes = probe_vae(args.probe_only, images.dir, device=_device(ap, args.device))
+        except (FileNotFoundError, ValueError) as e:
+            ap.error(f"--probe-only: {e}")
+        print(describe_near_hole_probe(probes["probe_near_hole"]), file=sys.stderr)
+        print(json.dumps(probes, indent=2))
+        return 0
     if args.resume:  # the run's settings come from its checkpoint unless given again (then they must agree)
         if args.out is None:
             ap.error("--resume needs --out (the run directory to continue)")

@@ -671,7 +671,9 @@ class AssemblyEnv(VecEnv):
             parts.append(self.force_smoothed_w + noise)
         if self.cfg.vision_latent_dim:
             if self.vision_source is not None and self._latent_version != self._state_version:
+                self.physics._tick(None)  # profiled (throughput's split): the camera and encoder as "vision"
                 self.set_vision_latent(self.vision_source(self))
+                self.physics._tick("vision")
                 self._latent_version = self._state_version
             parts.append(self.vision_latent)
         return TensorDict({"policy": torch.cat(parts, -1)}, batch_size=[self.num_envs])

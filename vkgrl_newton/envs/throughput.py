@@ -3,6 +3,7 @@
     python -m vkgrl_newton.envs.throughput --num-worlds 1 16 64 --steps 10 --json runs/bench/env.json
     python -m vkgrl_newton.envs.throughput --task NutThread --policy scripted --warmup 75 --num-worlds 16
     python -m vkgrl_newton.envs.throughput --graph both --num-worlds 16 64 --json runs/bench/graph.json
+    python -m vkgrl_newton.envs.throughput --vision quick --num-worlds 16 64     # with the task camera + encoder
 
 Each env step is 8 physics steps (1/120 s) x `substeps` solver substeps, with the OSC kernel every
 substep, plus the contact-force reduction and the Python/torch work of the step (action mapping,
@@ -18,6 +19,9 @@ world count in both modes, in one process, eager first). Timed runs per world co
    giving the split kinematics+OSC (Newton's eval_jacobian/eval_mass_matrix and our OSC kernel),
    collision (Newton's pipeline), solver (MuJoCo-Warp), contact forces (our reduction kernels);
    "python" is the profiled total minus those stages. (A graph has no stages to time.)
+With `--vision PRESET` the observation gains the vision latent of that preset's camera and an
+encoder of the thesis's shape (untrained weights cost the same; vision.latent.CameraLatent), so
+every env step also renders and encodes, and the eager split has a "vision" stage.
 Resets are excluded (the env is reset before timing). The JSON has `results`, one entry per
 (task, num_worlds, mode) with `task`, `num_worlds`, `mode` ("eager" | "graph"), `env_steps_per_s`,
 `ms_per_env_step`, and `speedup` (graph entries: eager ms / graph ms when both ran). An existing
@@ -43,18 +47,30 @@ from ..sim.physics import PROFILE_STAGES
 from ..sim.scene import SimConfig
 from .assembly_env import AssemblyEnv, EnvConfig
 
-STAGES = PROFILE_STAGES
+STAGES = PROFILE_STAGES + ("vision",)  # vision: the camera render and the encoder (with --vision)
 
 
 MODES = {"on": ("graph",), "off": ("eager",), "both": ("eager", "graph")}
 
 
 def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int = 2, task: str = "PegInsert",
-            policy: str = "zero", mode: str = "graph", sim: SimConfig | None = None) -> dict:
+            policy: str = "zero", mode: str = "graph", sim: SimConfig | None = None, vision: str | None = None) -> dict:
     if mode not in ("eager", "graph"):
         raise ValueError(f"mode must be 'eager' or 'graph', got {mode!r}")
     env = AssemblyEnv(EnvConfig(task=task, num_envs=num_worlds, action_dim=4, family="factory", device=device,
-                                graph=mode == "graph", sim=sim or SimConfig()))
+                                graph=mode == "graph", sim=sim or SimConfig(), vision_latent_dim=16 if vision else 0))
+    if vision is not None:
+        import dataclasses
+
+        from ..vision.collect import collect_camera_spec
+        from ..vision.latent import CameraLatent
+        from ..vision.pipeline import VISION_PRESETS
+        from ..vision.vae import DenoisingVAE, FrozenEncoder, VAEConfig
+
+        preset = VISION_PRESETS[vision]
+        camera = dataclasses.asdict(collect_camera_spec(preset.collect_config(task)))
+        encoder = FrozenEncoder(DenoisingVAE(VAEConfig(resolution=preset.resolution)), camera=camera)
+        env.attach_vision(CameraLatent(env, encoder))
     if policy == "scripted":
         from .scripted import ScriptedInserter
 
@@ -76,6 +92,7 @@ def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int 
     row = {
         "task": task,
         "policy": policy,
+        "vision": vision,
         "num_worlds": num_worlds,
         "mode": mode,
         "device": str(env.device),
@@ -113,6 +130,8 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=2, help="untimed env steps first")
     ap.add_argument("--collide-once-per-step", action="store_true",
                     help="SimConfig(collide_every_substep=False): collision once per physics step")
+    ap.add_argument("--vision", default=None, metavar="PRESET",
+                    help="render and encode the task camera of this vision preset every step (quick, thesis)")
     ap.add_argument("--graph", default="both", choices=sorted(MODES),
                     help="physics as one captured graph (on), eager launches (off), or both (default)")
     args = parse_cli(ap, argv, device=True)
@@ -127,6 +146,10 @@ def main(argv=None) -> int:
                  "(neither is to be timed)")
     if args.json is not None and args.json.exists():
         ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
+    from ..vision.pipeline import VISION_PRESETS
+
+    if args.vision is not None and args.vision not in VISION_PRESETS:
+        ap.error(f"--vision {args.vision!r}; allowed: {', '.join(VISION_PRESETS)}")
     rows = []
     print(f"{'worlds':>6} {'mode':>6} {'ms/step':>9} {'env steps/s':>12} {'x realtime':>10} {'us/world-substep':>16} "
           f"{'speedup':>8}   eager split ms/step: " + " ".join(f"{k:>14}" for k in (*STAGES, "python")))
@@ -134,7 +157,7 @@ def main(argv=None) -> int:
         eager_ms = None
         for mode in MODES[args.graph]:
             r = measure(n, args.steps, args.device, warmup=args.warmup, task=args.task, policy=args.policy, mode=mode,
-                        sim=SimConfig(collide_every_substep=not args.collide_once_per_step))
+                        sim=SimConfig(collide_every_substep=not args.collide_once_per_step), vision=args.vision)
             r["collide_every_substep"] = not args.collide_once_per_step
             if mode == "eager":
                 eager_ms = r["ms_per_env_step"]

@@ -1,13 +1,17 @@
 """Vision cost per control step: render every world's task camera, then encode with the frozen VAE.
 
     python -m vkgrl_newton.vision.bench --num-worlds 16 128 --resolution 64 256 --calls 3 --json runs/bench/vision.json
+    python -m vkgrl_newton.vision.bench --num-worlds 16 64 --preset quick thesis --task NutThread
 
-For each world count and resolution: a PegInsert env (Factory, 4D) after its reset, the task
-camera of thesis Table 5.6 at that resolution (Newton's SensorCamera), and a VAE encoder of the
-thesis's shape (5 conv layers, latent 16; untrained weights cost the same). Reported per call,
-i.e. per control step of all worlds: render ms, encode ms, their sum, and per world. Timed
-after one warm-up call; the device is synchronized around each stage. One torch thread unless
---threads says otherwise. An existing JSON file is never overwritten.
+For each world count and camera: a task env (Factory, 4D; PegInsert unless --task) after its
+reset, the task camera (Newton's SensorCamera) and a VAE encoder of the thesis's shape (5 conv
+layers, latent 16; untrained weights cost the same). The camera is either Table 5.6's at a
+--resolution, or a vision preset's (--preset: its resolution, lens, mount angles and sampling).
+Reported per call, i.e. per control step of all worlds: render ms, encode ms, their sum, per
+world, and beside them the env's control step itself (8 physics steps, the captured graph) at
+the same world count, so the ratio vision / physics is read off one run. Timed after one
+warm-up call; the device is synchronized around each stage. One torch thread unless --threads
+says otherwise. An existing JSON file is never overwritten.
 """
 
 from __future__ import annotations
@@ -28,12 +32,29 @@ from .latent import CameraLatent
 from .vae import DenoisingVAE, FrozenEncoder, VAEConfig
 
 
-def measure(num_worlds: int, resolution: int, calls: int, device: str | None = None) -> dict:
-    from ..envs.assembly_env import AssemblyEnv, EnvConfig
+def measure(num_worlds: int, resolution: int | None, calls: int, device: str | None = None, preset: str | None = None,
+            task: str = "PegInsert") -> dict:
+    import dataclasses
 
-    env = AssemblyEnv(EnvConfig(num_envs=num_worlds, action_dim=4, family="factory", device=device))
-    latent = CameraLatent(env, FrozenEncoder(DenoisingVAE(VAEConfig(resolution=resolution))))
+    from ..envs.assembly_env import AssemblyEnv, EnvConfig
+    from .collect import collect_camera_spec
+    from .pipeline import VISION_PRESETS
+
+    env = AssemblyEnv(EnvConfig(task=task, num_envs=num_worlds, action_dim=4, family="factory", device=device))
+    camera = None
+    if preset is not None:
+        spec = collect_camera_spec(VISION_PRESETS[preset].collect_config(task))
+        camera, resolution = dataclasses.asdict(spec), spec.width
+    latent = CameraLatent(env, FrozenEncoder(DenoisingVAE(VAEConfig(resolution=resolution)), camera=camera))
     latent(env)  # warm-up: kernels, BVH build, allocator
+    env.step(torch.zeros(num_worlds, 4, device=env.tdev))  # warm-up (graph capture)
+    physics = 0.0
+    for _ in range(calls):
+        wp.synchronize_device(env.device)
+        t0 = time.perf_counter()
+        env.step(torch.zeros(num_worlds, 4, device=env.tdev))
+        wp.synchronize_device(env.device)
+        physics += time.perf_counter() - t0
     render = encode = 0.0
     for _ in range(calls):
         wp.synchronize_device(env.device)
@@ -48,15 +69,20 @@ def measure(num_worlds: int, resolution: int, calls: int, device: str | None = N
         render += t1 - t0
         encode += t2 - t1
     r_ms, e_ms = render / calls * 1e3, encode / calls * 1e3
-    return {"num_worlds": num_worlds, "resolution": resolution, "device": env.device, "calls": calls,
+    p_ms = physics / calls * 1e3
+    return {"num_worlds": num_worlds, "resolution": resolution, "preset": preset, "task": task,
+            "camera": dataclasses.asdict(latent.spec), "device": env.device, "calls": calls,
             "render_ms": r_ms, "encode_ms": e_ms, "total_ms": r_ms + e_ms,
-            "ms_per_world": (r_ms + e_ms) / num_worlds}
+            "ms_per_world": (r_ms + e_ms) / num_worlds, "env_step_ms": p_ms, "vision_over_step": (r_ms + e_ms) / p_ms}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--num-worlds", type=int, nargs="+", default=[16, 128])
-    ap.add_argument("--resolution", type=int, nargs="+", default=[64, 256])
+    ap.add_argument("--resolution", type=int, nargs="+", default=None,
+                    help="Table 5.6's camera at these resolutions (default 64 256 without --preset)")
+    ap.add_argument("--preset", nargs="+", default=None, help="vision presets' cameras (vision.pipeline.VISION_PRESETS)")
+    ap.add_argument("--task", default="PegInsert")
     ap.add_argument("--calls", type=int, default=3)
     ap.add_argument("--device", default=None)
     ap.add_argument("--threads", type=int, default=1)
@@ -66,19 +92,33 @@ def main(argv=None) -> int:
         ap.error(f"--json {args.json} exists; results are never overwritten")
     if min(args.num_worlds) < 1 or args.calls < 1:
         ap.error("--num-worlds and --calls must be >= 1")
-    for r in args.resolution:
+    from ..tasks import TASKS
+    from .pipeline import VISION_PRESETS
+
+    if args.task not in TASKS:
+        ap.error(f"--task {args.task!r}; allowed: {', '.join(TASKS)}")
+    for p in args.preset or ():
+        if p not in VISION_PRESETS:
+            ap.error(f"--preset {p!r}; allowed: {', '.join(VISION_PRESETS)}")
+    if args.resolution is None and args.preset is None:
+        args.resolution = [64, 256]
+    for r in args.resolution or ():
         try:
             VAEConfig(resolution=r)
         except ValueError as e:
             ap.error(f"--resolution: {e}")
     torch.set_num_threads(args.threads)
+    cameras = [(r, None) for r in args.resolution or ()] + [(None, p) for p in args.preset or ()]
     rows = []
     for n in args.num_worlds:
-        for r in args.resolution:
-            row = measure(n, r, args.calls, args.device)
+        for r, p in cameras:
+            row = measure(n, r, args.calls, args.device, preset=p, task=args.task)
             rows.append(row)
-            print(f"{n:5d} worlds {r:4d} px: render {row['render_ms']:9.1f} ms  encode {row['encode_ms']:8.1f} ms  "
-                  f"total {row['total_ms']:9.1f} ms  ({row['ms_per_world']:.2f} ms/world)", flush=True)
+            name = f"preset {p}" if p else "Table 5.6"
+            print(f"{n:5d} worlds {row['resolution']:4d} px ({name}): render {row['render_ms']:9.1f} ms  "
+                  f"encode {row['encode_ms']:8.1f} ms  total {row['total_ms']:9.1f} ms  "
+                  f"({row['ms_per_world']:.2f} ms/world)  env step {row['env_step_ms']:8.1f} ms  "
+                  f"vision/step {row['vision_over_step']:.2f}", flush=True)
     if args.json is not None:
         out = {"machine": platform.processor() or platform.machine(), "torch": torch.__version__,
                "threads": args.threads, "rows": rows}

@@ -131,8 +131,11 @@ def regression_rmse(x_train, y_train, x_val, y_val, model: str = "linear", seed:
 
     model "linear": an affine map (inputs standardized, ridge 1e-6 against the mean squared error,
     only so that collinear inputs stay solvable); "mlp": scikit-learn's MLPRegressor, two hidden
-    layers of 64 ReLU units on standardized inputs and targets, Adam, L2 1e-4, early stopping on
-    a 10 % split of the training rows. Computed in float64."""
+    layers of 64 ReLU units on standardized inputs and targets, fitted by L-BFGS (at most 1000
+    iterations) with an L2 penalty of 0.1. That solver and penalty were chosen on one image
+    set's pixel measurements (PegInsert, 128 px, 1 401 training frames) against Adam with early
+    stopping, which stopped short (RMSE 2x the affine map's): the penalty is a fixed setting,
+    never tuned on the frames a probe is scored on. Computed in float64."""
     from sklearn.compose import TransformedTargetRegressor
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import make_pipeline
@@ -148,8 +151,7 @@ def regression_rmse(x_train, y_train, x_val, y_val, model: str = "linear", seed:
     elif model == "mlp":
         if xt.shape[0] < 20:
             raise ValueError(f"regression_rmse: model 'mlp' needs at least 20 training rows, got {xt.shape[0]}")
-        mlp = MLPRegressor(hidden_layer_sizes=(64, 64), alpha=1e-4, learning_rate_init=1e-3, max_iter=2000,
-                           early_stopping=True, validation_fraction=0.1, n_iter_no_change=50, random_state=seed)
+        mlp = MLPRegressor(hidden_layer_sizes=(64, 64), solver="lbfgs", alpha=0.1, max_iter=1000, random_state=seed)
         reg = TransformedTargetRegressor(regressor=make_pipeline(StandardScaler(), mlp), transformer=StandardScaler())
     else:
         raise ValueError(f"regression_rmse: model={model!r}; allowed: 'linear', 'mlp'")

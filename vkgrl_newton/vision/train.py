@@ -87,7 +87,7 @@ from .dataset import ImageSet
 from .probe import PROBE_AXES, near_hole_mask, near_hole_probe, linear_probe
 from .vae import DenoisingVAE, VAEConfig, load_vae, save_vae, to_float_images, vae_loss
 
-__all__ = ["train_vae", "LOSS_KEYS", "PROBE_TARGETS", "PROBE_MAX_TRAIN", "NUM_FIGURE_IMAGES"]
+__all__ = ["train_vae", "probe_vae", "describe_near_hole_probe", "LOSS_KEYS", "PROBE_TARGETS", "PROBE_MAX_TRAIN", "NUM_FIGURE_IMAGES"]
 
 LOSS_KEYS = ("loss", "recon", "kl", "mse")  # vae_loss's parts, logged per epoch and split
 PROBE_TARGETS = ("x", "y", "z", "cos_yaw", "sin_yaw")
@@ -268,6 +268,15 @@ def train_vae(image_dir, out_dir, *, epochs: int, batch_size: int = 128, lr: flo
         "validation probe R^2 " + ", ".join(f"{k}={_fmt(probe['r2_' + k])}" for k in PROBE_TARGETS))
     log(describe_near_hole_probe(probe_near))
     return metrics
+
+
+def probe_vae(vae_path, image_dir, batch_size: int = 128, device: str | torch.device = "cpu", seed: int = 0) -> dict:
+    """Both probes of a trained VAE on an image set (its own or another of the same task and
+    resolution): {"probe": the whole-range linear probe, "probe_near_hole": the near-hole probe}."""
+    images = ImageSet(image_dir)
+    vae, _ = load_vae(vae_path, expect={"task": images.task, "resolution": images.resolution}, map_location=device)
+    return {"probe": _probe(vae, images, batch_size, device),
+            "probe_near_hole": _probe_near_hole(vae, images, batch_size, device, seed)}
 
 
 def describe_near_hole_probe(p: dict | None) -> str:
