@@ -486,13 +486,20 @@ def test_presets_and_their_cache_names(tmp_path):
     """The thesis preset is Tables 5.5-5.6 with eq. 4.48 and GroupNorm as written; every setting
     in which a preset differs from it is in its cache directory's name, so a VAE trained with
     other settings is never picked up for it."""
+    import dataclasses
+
     from vkgrl_newton.vision.collect import collection_key
     from vkgrl_newton.vision.pipeline import VISION_PRESETS, VisionPreset, default_vae_dir
 
     thesis, quick = VISION_PRESETS["thesis"], VISION_PRESETS["quick"]
     assert (thesis.resolution, thesis.num_images, thesis.vae_epochs, thesis.vae_batch_size) == (256, 130_000, 400, 128)
     assert thesis.kl_weight == 1.0 and thesis.group_norm and thesis.vae_config().group_norm
-    assert (thesis.focal_length, thesis.camera_rpy_deg, thesis.samples_per_pixel) == (None, None, 1)  # Table 5.6
+    assert (thesis.camera, thesis.samples_per_pixel) == ("table5.6", 1)  # Table 5.6
+    from vkgrl_newton.sim.camera import TASK_CAMERAS
+    from vkgrl_newton.vision.collect import collect_camera_spec
+
+    for task, spec in TASK_CAMERAS.items():  # the thesis preset renders Table 5.6's camera at 256 px
+        assert collect_camera_spec(thesis.collect_config(task)) == dataclasses.replace(spec, width=256, height=256)
     key = collection_key(thesis.collect_config("PegInsert"))
     assert default_vae_dir(tmp_path, "PegInsert", thesis) == (
         tmp_path / "PegInsert" / f"vae_v1_r256_n130000_e400_seed0_{key}")
@@ -515,8 +522,8 @@ def test_any_preset_or_collection_change_makes_a_new_cache_entry(tmp_path):
     other = {int: lambda v: v + 1, float: lambda v: v * 0.5 + 0.01, bool: lambda v: not v, str: None,
              type(None): None}
     quick = VISION_PRESETS["quick"]
-    changes = {"focal_length": 48.0, "camera_rpy_deg": (0.0, -29.0, 0.0), "samples_per_pixel": 4,
-               "val_fraction": 0.3}
+    changes = {"camera": "table5.6" if quick.camera != "table5.6" else "contact", "samples_per_pixel": 4,
+               "val_fraction": 0.3, "episode_steps": 45}
     base_vae = default_vae_dir(tmp_path, "PegInsert", quick)
     for f in dataclasses.fields(quick):
         v = getattr(quick, f.name)

@@ -97,7 +97,7 @@ def test_regressions_recover_a_known_latent_relation():
     from vkgrl_newton.vision.probe import regression_rmse
 
     rng = np.random.default_rng(3)
-    n_fit, n_val, sigma, d = 3000, 1000, 0.3, 16
+    n_fit, n_val, sigma, d = 800, 600, 0.3, 16
     y = rng.uniform(-5, 5, size=(n_fit + n_val, 3))  # mm
     signal = np.column_stack([y + sigma * rng.normal(size=y.shape), rng.normal(size=(len(y), d - 3))])
     mix = Rotation.random(random_state=rng).as_matrix()
@@ -125,7 +125,7 @@ def test_near_hole_probe_on_a_blob_moved_by_sub_pixel_offsets():
     from vkgrl_newton.vision.probe import near_hole_mask, near_hole_probe, part_pixel_features
 
     rng = np.random.default_rng(4)
-    n = 1800
+    n = 1000
     near_drawn = rng.random(n) < 0.75
     direction = rng.normal(size=(n, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
@@ -150,7 +150,10 @@ def test_near_hole_probe_on_a_blob_moved_by_sub_pixel_offsets():
     latent = np.column_stack([1e3 * t + 0.2 * rng.normal(size=(n, 3)), rng.normal(size=(n, 5))])
     latent[~near] = 1e3 * rng.normal(size=((~near).sum(), 8))  # far frames: unrelated, huge
     tr = np.arange(n) < int(0.7 * n)
-    p = near_hole_probe(latent[tr], g[tr], latent[~tr], g[~tr], pixels[tr], pixels[~tr])
+    episode = np.arange(n) // 10  # 10 frames an episode
+    p = near_hole_probe(latent[tr], g[tr], latent[~tr], g[~tr], pixels[tr], pixels[~tr], episodes_val=episode[~tr])
+    assert p["num_episodes"] == len(np.unique(episode[~tr][near[~tr]]))
+    assert 0 < p["latent_linear_rmse_mm_se"]["x"] < 0.05 and set(p["pixel_baseline_rmse_mm_se"]) == set("xyz")
     assert p["num_images"] == int(near[~tr].sum()) and p["num_fit"] == int(near[tr].sum())
     assert p["observation_noise_mm"] == 1.0 and p["pixel_baseline_num_images"] == p["num_images"]
     for axis in "xy":
@@ -165,3 +168,25 @@ def test_near_hole_probe_on_a_blob_moved_by_sub_pixel_offsets():
     assert p["pixel_baseline_linear_rmse_mm"]["z"] > 0.9 * p["mean_predictor_rmse_mm"]["z"]
     few = near_hole_probe(latent[:30], g[:30], latent[-30:], g[-30:])
     assert few["latent_linear_rmse_mm"] is None and "at least 20" in few["skipped"]
+
+
+def test_episode_bootstrap_se_resamples_whole_episodes():
+    """RMSE of n draws of N(0, 1) has a standard error of ~1 / sqrt(2 n) (delta method). Errors
+    constant within each of 60 episodes of 20 frames count as 60 draws, not 1 200; independent
+    frames as 1 200. Tolerances: the bootstrap's own spread at 2 000 draws and 60 episodes (~20 %)."""
+    from vkgrl_newton.vision.probe import episode_bootstrap_se
+
+    rng = np.random.default_rng(5)
+    episodes = np.repeat(np.arange(60), 20)
+    per_episode = np.repeat(rng.normal(size=(60, 1)), 20, axis=0)
+    se = episode_bootstrap_se(per_episode, episodes, draws=2000)
+    assert abs(se[0] * math.sqrt(2 * 60) - 1) < 0.3, se
+    frames = rng.normal(size=(1200, 1))
+    se_frames = episode_bootstrap_se(frames, np.arange(1200), draws=2000)
+    assert abs(se_frames[0] * math.sqrt(2 * 1200) - 1) < 0.2, se_frames
+    # against a direct loop over the same draws
+    ids = np.unique(episodes)
+    pick = np.random.default_rng(0).integers(0, len(ids), size=(50, len(ids)))
+    loop = [math.sqrt(np.mean(np.concatenate([per_episode[episodes == ids[k], 0] ** 2 for k in row]))) for row in pick]
+    np.testing.assert_allclose(episode_bootstrap_se(per_episode, episodes, draws=50, seed=0)[0], np.std(loop, ddof=1),
+                               rtol=1e-12)

@@ -15,9 +15,10 @@ Steps 1 and 2 each run under their cache entry's lock (`vkgrl_newton.cache`): ru
 together on an empty cache collect and train once, the others wait and reuse.
 
 Presets: `thesis` as Tables 5.5-5.6 (256 x 256, 130,000 images, 400 epochs, batch 128, eq. 4.48
-as written, GroupNorm: a GPU job); `quick`, small enough for a 2-core CPU (64 x 64, 4,096
-images, 10 epochs of batch 32, ~5 min), with changes measured on PegInsert's quick image set
-(docs/benchmarks.md), without which the VAE never leaves the mean-image plateau on this budget:
+as written, GroupNorm, Table 5.6's cameras: a GPU job); `quick`, small enough for a 2-core CPU
+(64 x 64, 4,096 images, 10 epochs of batch 32, ~5 min), with changes measured on PegInsert's quick
+image sets (docs/benchmarks.md), without which the VAE never leaves the mean-image plateau on this
+budget or does not see the hole well enough:
 - no GroupNorm (`VAEConfig.group_norm=False`): with it, a plain autoencoder could not even fit
   64 images in 400 full-batch steps (encoder means equal for all images); without it, it leaves
   the plateau in ~150;
@@ -27,7 +28,14 @@ images, 10 epochs of batch 32, ~5 min), with changes measured on PegInsert's qui
   and ~0.77 / 0.77;
 - batch 32 (4x the gradient steps per image) and 10 epochs: the linear probe of the latent peaked
   at ~9 epochs and fell after (x / y R^2 0.73 / 0.57 at 17 epochs while the reconstruction kept
-  improving), so the epoch count is an early stop chosen on the validation episodes' probe.
+  improving), so the epoch count is an early stop chosen on the validation episodes' probe;
+- the "contact" cameras (sim.camera.CONTACT_CAMERAS): PegInsert's Table 5.6 camera re-aimed at the
+  peg's tip with a 48 mm lens, ~1 mm per pixel where the parts meet instead of ~2 (the near-hole
+  probe: the latent locates the hole to 0.51 / 0.18 mm on x / y against 0.85 / 0.28 with Table
+  5.6's reading, on the same states); GearMesh's and NutThread's are Table 5.6's;
+- collection rounds of 60 control steps (4 s) instead of whole episodes and 20 % of the episodes
+  held out: ~200 episodes in the set instead of ~100, ~30 held-out episodes near the hole for the
+  near-hole probe instead of ~7 (one episode's error moved the RMSE by 0.1 mm).
 A user's own VAE (`vae_path`) skips 1 and 2.
 """
 
@@ -54,11 +62,12 @@ class VisionPreset:
     kl_weight: float = 1.0  # eq. 4.48 as written
     group_norm: bool = True  # 5.6.1
     seed: int = 0
-    # the image set's camera and sampling (None / 1 / 0.1: Table 5.6 and the collector's defaults)
-    focal_length: float | None = None
-    camera_rpy_deg: tuple[float, float, float] | None = None
+    # the image set's camera (sim.camera.CAMERA_SETS: "table5.6" as the thesis, "contact" aimed at
+    # where the parts meet) and sampling; the split and the collection rounds (the collector's defaults)
+    camera: str = "table5.6"
     samples_per_pixel: int = 1
     val_fraction: float = 0.1
+    episode_steps: int | None = None  # control steps per collection round (None: whole episodes)
 
     def vae_config(self) -> VAEConfig:
         return VAEConfig(resolution=self.resolution, group_norm=self.group_norm)
@@ -66,16 +75,21 @@ class VisionPreset:
     def collect_config(self, task: str, num_envs: int = 16, device: str = "cpu") -> CollectConfig:
         """The image set's collection (16 worlds whatever the run's world count: the set does not
         depend on it)."""
+        from ..sim.camera import CAMERA_SETS
+
+        if self.camera not in CAMERA_SETS:
+            raise ValueError(f"VisionPreset.camera={self.camera!r}; allowed: {sorted(CAMERA_SETS)}")
+        spec = CAMERA_SETS[self.camera][task]
         return CollectConfig(task=task, num_images=self.num_images, resolution=self.resolution, num_envs=num_envs,
-                             seed=self.seed, device=device, focal_length=self.focal_length,
-                             camera_rpy_deg=self.camera_rpy_deg, samples_per_pixel=self.samples_per_pixel,
-                             val_fraction=self.val_fraction)
+                             seed=self.seed, device=device, focal_length=spec.focal_length,
+                             camera_rpy_deg=spec.rpy_deg, samples_per_pixel=self.samples_per_pixel,
+                             val_fraction=self.val_fraction, episode_steps=self.episode_steps)
 
 
 VISION_PRESETS = {
     "thesis": VisionPreset(resolution=256, num_images=130_000, vae_epochs=400),
     "quick": VisionPreset(resolution=64, num_images=4_096, vae_epochs=10, vae_batch_size=32, kl_weight=0.01,
-                          group_norm=False),
+                          group_norm=False, camera="contact", val_fraction=0.2, episode_steps=60),
 }
 
 

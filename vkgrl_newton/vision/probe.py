@@ -29,7 +29,7 @@ from sklearn.linear_model import LinearRegression, Ridge
 from sklearn.metrics import r2_score
 
 __all__ = ["linear_probe", "near_hole_mask", "relative_in_image", "part_pixel_features", "regression_rmse",
-           "near_hole_probe", "NEAR_HOLE_XY", "NEAR_HOLE_HEIGHT", "PROBE_AXES"]
+           "regression_errors", "episode_bootstrap_se", "near_hole_probe", "NEAR_HOLE_XY", "NEAR_HOLE_HEIGHT", "PROBE_AXES"]
 
 NEAR_HOLE_XY = 0.01  # m: the held part within this horizontal distance of the fixed tip ...
 NEAR_HOLE_HEIGHT = 0.02  # m: ... and less than this above it (in contact or inside: below 0)
@@ -127,7 +127,14 @@ def part_pixel_features(shape_index: np.ndarray, depth: np.ndarray, ray_dirs: np
 
 
 def regression_rmse(x_train, y_train, x_val, y_val, model: str = "linear", seed: int = 0) -> np.ndarray:
-    """Fit y ~ f(x) on the training rows, (k,) RMSE per target column on the validation rows.
+    """Fit y ~ f(x) on the training rows, (k,) RMSE per target column on the validation rows
+    (`regression_errors` gives the errors themselves)."""
+    err = regression_errors(x_train, y_train, x_val, y_val, model, seed)
+    return np.sqrt((err ** 2).mean(axis=0))
+
+
+def regression_errors(x_train, y_train, x_val, y_val, model: str = "linear", seed: int = 0) -> np.ndarray:
+    """Fit y ~ f(x) on the training rows; (n_val, k) prediction errors f(x_val) - y_val.
 
     model "linear": an affine map (inputs standardized, ridge 1e-6 against the mean squared error,
     only so that collinear inputs stay solvable); "mlp": scikit-learn's MLPRegressor, two hidden
@@ -163,11 +170,24 @@ def regression_rmse(x_train, y_train, x_val, y_val, model: str = "linear", seed:
         warnings.simplefilter("ignore", ConvergenceWarning)  # max_iter is a budget here, not an error
         reg.fit(xt, yt if yt.shape[1] > 1 else yt[:, 0])
     pred = np.asarray(reg.predict(xv), dtype=np.float64).reshape(yv.shape)
-    return np.sqrt(((pred - yv) ** 2).mean(axis=0))
+    return pred - yv
+
+
+def episode_bootstrap_se(errors: np.ndarray, episodes: np.ndarray, draws: int = 1000, seed: int = 0) -> np.ndarray:
+    """(k,) standard error of the RMSE per column over a resampling of whole episodes (frames of
+    one episode are correlated: resampling frames would understate it): the std of the RMSE of
+    `draws` sets of as many episodes drawn with replacement."""
+    ids, inverse = np.unique(np.asarray(episodes), return_inverse=True)
+    sq = np.zeros((len(ids), errors.shape[1]))
+    np.add.at(sq, inverse, errors ** 2)
+    count = np.bincount(inverse, minlength=len(ids)).astype(np.float64)
+    pick = np.random.default_rng(seed).integers(0, len(ids), size=(draws, len(ids)))
+    rmse = np.sqrt(sq[pick].sum(axis=1) / count[pick].sum(axis=1)[:, None])
+    return rmse.std(axis=0, ddof=1)
 
 
 def near_hole_probe(latent_train, geometry_train, latent_val, geometry_val, pixels_train=None, pixels_val=None,
-                    seed: int = 0, min_images: int = 20) -> dict:
+                    seed: int = 0, min_images: int = 20, episodes_val=None) -> dict:
     """The near-hole probe: fit on the near-hole training frames, RMSE (mm per image axis) on the
     near-hole validation frames, of the fixed tip relative to the held part in the image's frame.
 
@@ -176,8 +196,11 @@ def near_hole_probe(latent_train, geometry_train, latent_val, geometry_val, pixe
     "mean_predictor_rmse_mm" (predicting the training mean: what no information gives),
     "observation_noise_mm" 1.0 (Factory's per-axis noise on the fixed part's position), "num_images"
     (validation frames scored), "num_fit", "pixel_baseline_num_images" (validation frames with both
-    parts in view, where the baseline is scored), and the selection's definition}. With fewer than
-    `min_images` near-hole frames in either split the RMSEs are None and "skipped" says why."""
+    parts in view, where the baseline is scored), and the selection's definition}. Given the
+    validation frames' episode ids, also "num_episodes" and, per RMSE, "<name>_se" (mm per axis):
+    its standard error over a bootstrap of whole held-out episodes (`episode_bootstrap_se`). With
+    fewer than `min_images` near-hole frames in either split the RMSEs are None and "skipped"
+    says why."""
     from ..envs.assembly_env import TARGET_OBS_NOISE
 
     zt, zv = _as_2d(latent_train, "latent_train"), _as_2d(latent_val, "latent_val")
@@ -196,17 +219,26 @@ def near_hole_probe(latent_train, geometry_train, latent_val, geometry_val, pixe
         return out
     yt, yv = relative_in_image(gt[mt]), relative_in_image(gv[mv])
 
+    ep = None if episodes_val is None else np.asarray(episodes_val)[mv]
+    if ep is not None:
+        out["num_episodes"] = int(len(np.unique(ep)))
+
     def mm(rmse: np.ndarray) -> dict:
         return {a: float(v * 1e3) for a, v in zip(PROBE_AXES, rmse)}
 
-    out["mean_predictor_rmse_mm"] = mm(np.sqrt(((yv - yt.mean(axis=0)) ** 2).mean(axis=0)))
-    out["latent_linear_rmse_mm"] = mm(regression_rmse(zt[mt], yt, zv[mv], yv, "linear"))
-    out["latent_mlp_rmse_mm"] = mm(regression_rmse(zt[mt], yt, zv[mv], yv, "mlp", seed))
+    def put(name: str, errors: np.ndarray, rows=slice(None)) -> None:
+        out[name] = mm(np.sqrt((errors ** 2).mean(axis=0)))
+        if ep is not None:
+            out[name + "_se"] = mm(episode_bootstrap_se(errors, ep[rows], seed=seed))
+
+    put("mean_predictor_rmse_mm", yt.mean(axis=0) - yv)
+    put("latent_linear_rmse_mm", regression_errors(zt[mt], yt, zv[mv], yv, "linear"))
+    put("latent_mlp_rmse_mm", regression_errors(zt[mt], yt, zv[mv], yv, "mlp", seed))
     if pixels_train is not None and pixels_val is not None:
         pt, pv = np.asarray(pixels_train, np.float64)[mt], np.asarray(pixels_val, np.float64)[mv]
         ft, fv = np.isfinite(pt).all(axis=1), np.isfinite(pv).all(axis=1)
         out["pixel_baseline_num_images"] = int(fv.sum())
         if ft.sum() >= min_images and fv.sum() >= min_images:
-            out["pixel_baseline_rmse_mm"] = mm(regression_rmse(pt[ft], yt[ft], pv[fv], yv[fv], "mlp", seed))
-            out["pixel_baseline_linear_rmse_mm"] = mm(regression_rmse(pt[ft], yt[ft], pv[fv], yv[fv], "linear"))
+            put("pixel_baseline_rmse_mm", regression_errors(pt[ft], yt[ft], pv[fv], yv[fv], "mlp", seed), fv)
+            put("pixel_baseline_linear_rmse_mm", regression_errors(pt[ft], yt[ft], pv[fv], yv[fv], "linear"), fv)
     return out

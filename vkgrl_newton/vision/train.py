@@ -286,13 +286,17 @@ def describe_near_hole_probe(p: dict | None) -> str:
     if p.get("skipped"):
         return f"near-hole probe: skipped ({p['skipped']})"
 
-    def xyz(d):
-        return "n/a" if d is None else " / ".join(f"{d[a]:.2f}" for a in PROBE_AXES)
+    def xyz(key):
+        d, se = p.get(key), p.get(key + "_se")
+        if d is None:
+            return "n/a"
+        return " / ".join(f"{d[a]:.2f}" + (f"+-{se[a]:.2f}" if se else "") for a in PROBE_AXES)
 
-    return (f"near-hole probe, RMSE mm x / y / z on {p['num_images']} held-out frames (noise "
-            f"{p['observation_noise_mm']:g} mm per axis): latent linear {xyz(p['latent_linear_rmse_mm'])}, "
-            f"latent MLP {xyz(p['latent_mlp_rmse_mm'])}, pixel baseline {xyz(p['pixel_baseline_rmse_mm'])}, "
-            f"mean predictor {xyz(p['mean_predictor_rmse_mm'])}")
+    episodes = f" of {p['num_episodes']} episodes" if "num_episodes" in p else ""
+    return (f"near-hole probe, RMSE mm x / y / z on {p['num_images']} held-out frames{episodes} (noise "
+            f"{p['observation_noise_mm']:g} mm per axis): latent linear {xyz('latent_linear_rmse_mm')}, "
+            f"latent MLP {xyz('latent_mlp_rmse_mm')}, pixel baseline {xyz('pixel_baseline_rmse_mm')}, "
+            f"mean predictor {xyz('mean_predictor_rmse_mm')}")
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -372,7 +376,7 @@ def _probe_near_hole(vae: DenoisingVAE, images: ImageSet, batch_size: int, devic
     enc = {name: _encode(vae, images.images, idx, batch_size, device) if len(idx) else np.zeros((0, vae.config.latent_dim))
            for name, idx in (("train", tr), ("val", va))}
     return near_hole_probe(enc["train"], images.geometry[tr], enc["val"], images.geometry[va],
-                           images.pixels[tr], images.pixels[va], seed=seed)
+                           images.pixels[tr], images.pixels[va], seed=seed, episodes_val=images.episode[va])
 
 
 def _finite(v: float) -> float | None:
