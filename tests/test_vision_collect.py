@@ -99,3 +99,29 @@ def test_collect_config_errors():
         CollectConfig(focal_length=-1.0)
     with pytest.raises(ValueError, match="task='Pegs'"):
         CollectConfig(task="Pegs")
+
+
+def test_collect_images_cli_takes_a_presets_collection(tmp_path, monkeypatch):
+    """`--preset quick` collects exactly what run.py's pipeline would (the same cache key), and
+    single flags change single settings of it."""
+    import dataclasses
+
+    from scripts import load_script
+
+    from vkgrl_newton.sim.camera import TASK_CAMERAS
+    from vkgrl_newton.vision.collect import collection_key
+    from vkgrl_newton.vision.pipeline import VISION_PRESETS
+
+    cli = load_script("collect_images")
+    got = []
+    monkeypatch.setattr(cli, "collect_images", lambda cfg, out, progress: got.append(cfg))
+    assert cli.main(["--preset", "quick", "--task", "NutThread", "--out", str(tmp_path / "a"), "--device", "cpu"]) == 0
+    want = VISION_PRESETS["quick"].collect_config("NutThread")
+    assert got[-1] == dataclasses.replace(want, device="cpu") and collection_key(got[-1]) == collection_key(want)
+    assert cli.main(["--preset", "quick", "--camera", "table5.6", "--episode-steps", "30", "--out",
+                     str(tmp_path / "b")]) == 0
+    cfg = got[-1]
+    assert (cfg.camera_rpy_deg, cfg.focal_length) == (TASK_CAMERAS["PegInsert"].rpy_deg,
+                                                      TASK_CAMERAS["PegInsert"].focal_length)
+    assert cfg.episode_steps == 30 and cfg.resolution == VISION_PRESETS["quick"].resolution
+    assert cli.main(["--out", str(tmp_path / "c")]) == 0 and got[-1].camera_rpy_deg is None  # CollectConfig's own
