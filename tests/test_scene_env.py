@@ -10,6 +10,7 @@ that corrupt a world's state last. Tests needing a freshly reset env reset it wh
 """
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -420,6 +421,46 @@ def test_task_camera_pose_and_image(peg_env):
     blue = (b > r + 40) & (b > g + 20)
     assert np.all(orange.sum(axis=(1, 2)) > 200), orange.sum(axis=(1, 2))
     assert np.all(blue.sum(axis=(1, 2)) > 200), blue.sum(axis=(1, 2))
+
+
+def test_contact_camera_looks_at_the_peg_tip_and_the_latent_renders_the_encoders_camera(peg_env):
+    """The quick preset's PegInsert camera (sim.camera.CONTACT_CAMERAS) is aimed through the held
+    peg's bottom: its optical axis passes within 2 degrees of it (Table 5.6's, tilted 20 degrees,
+    ~9 degrees off), and 1 mm there spans about a pixel at 64 px. CameraLatent renders the camera
+    its encoder's images came from, and refuses one of another resolution."""
+    from vkgrl_newton.sim.camera import CONTACT_CAMERAS, TASK_CAMERAS, TaskCamera
+    from vkgrl_newton.vision.latent import CameraLatent
+    from vkgrl_newton.vision.vae import DenoisingVAE, FrozenEncoder, VAEConfig
+
+    env = ensure_fresh(peg_env)
+    hand = env._state_views(env.state_0)["body_q"][env.hand_idx]
+    held = env.held_pose()[0].double().numpy()
+
+    def off_axis_deg(spec):
+        poses = TaskCamera(env.model, spec, E).camera_poses_w(hand[:, :3], hand[:, 3:]).double().numpy()
+        out = []
+        for e in range(E):
+            forward = qmat(poses[e, 3:]) @ np.array([0.0, 0.0, -1.0])
+            to_tip = held[e] - poses[e, :3]
+            out.append(math.degrees(math.acos(forward @ to_tip / np.linalg.norm(to_tip))))
+        return np.array(out), np.linalg.norm(held - poses[:, :3], axis=1)
+
+    contact, dist = off_axis_deg(CONTACT_CAMERAS["PegInsert"])
+    table, _ = off_axis_deg(TASK_CAMERAS["PegInsert"])
+    assert np.all(contact < 2.0) and np.all(table > 6.0), (contact, table)
+    spec = CONTACT_CAMERAS["PegInsert"]
+    mm_per_px = 1e3 * dist * spec.horizontal_aperture / spec.focal_length / 64  # pinhole, at the tip's range
+    assert np.all((0.8 < mm_per_px) & (mm_per_px < 1.4)), mm_per_px
+    small = dataclasses.replace(spec, width=32, height=32)
+    encoder = FrozenEncoder(DenoisingVAE(VAEConfig(resolution=32, channels=(8, 8, 8, 8, 8))),
+                            camera=json.loads(json.dumps(dataclasses.asdict(small))))  # as stored in a vae.pt
+    latent = CameraLatent(env, encoder)
+    assert latent.spec == small
+    assert latent(env).shape == (E, encoder.latent_dim)
+    wrong = FrozenEncoder(DenoisingVAE(VAEConfig(resolution=64, channels=(8, 8, 8, 8, 8))),
+                          camera=dataclasses.asdict(small))
+    with pytest.raises(ValueError, match="renders 32 x 32, its input is 64 x 64"):
+        CameraLatent(env, wrong)
 
 
 # ------------------------------------------------------------------ blow-ups (these perturb the env: keep last)
