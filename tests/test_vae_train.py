@@ -344,3 +344,21 @@ def test_cli_probe_only_reproduces_the_runs_probes_and_writes_nothing(cli, image
     with pytest.raises(SystemExit):
         cli.main(["--images", str(image_dir), "--probe-only", str(out / "missing.pt")])
     assert "--probe-only" in capsys.readouterr().err
+
+
+def test_probe_vae_refuses_images_of_another_camera(image_dir, straight, tmp_path):
+    import shutil
+
+    from vkgrl_newton.vision.train import probe_vae
+
+    out, _ = straight
+    other = tmp_path / "other_camera"
+    shutil.copytree(image_dir, other)
+    meta = json.loads((other / "meta.json").read_text())
+    (other / "meta.json").write_text(json.dumps({**meta, "camera": {"focal_length": 48.0}}))
+    vae, payload = load_vae(out / "vae.pt")
+    from vkgrl_newton.vision.vae import save_vae
+
+    save_vae(tmp_path / "vae.pt", vae, vae.config, {**payload["meta"], "camera": {"focal_length": 24.0}})
+    with pytest.raises(ValueError, match="probe it on images of its own camera"):
+        probe_vae(tmp_path / "vae.pt", other)

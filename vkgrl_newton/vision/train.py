@@ -274,7 +274,12 @@ def probe_vae(vae_path, image_dir, batch_size: int = 128, device: str | torch.de
     """Both probes of a trained VAE on an image set (its own or another of the same task and
     resolution): {"probe": the whole-range linear probe, "probe_near_hole": the near-hole probe}."""
     images = ImageSet(image_dir)
-    vae, _ = load_vae(vae_path, expect={"task": images.task, "resolution": images.resolution}, map_location=device)
+    vae, payload = load_vae(vae_path, expect={"task": images.task, "resolution": images.resolution},
+                            map_location=device)
+    trained_on, shown = payload["meta"].get("camera"), images.meta.get("camera")
+    if trained_on is not None and shown is not None and trained_on != shown:
+        raise ValueError(f"VAE {vae_path} was trained on images of camera {trained_on}, the image set {images.dir} "
+                         f"was taken with {shown}: probe it on images of its own camera")
     return {"probe": _probe(vae, images, batch_size, device),
             "probe_near_hole": _probe_near_hole(vae, images, batch_size, device, seed)}
 
