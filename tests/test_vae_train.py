@@ -328,19 +328,17 @@ def test_kl_warmup_epochs_must_be_a_nonnegative_int(image_dir, tmp_path):
 def test_cli_probe_only_reproduces_the_runs_probes_and_writes_nothing(cli, image_dir, straight, capsys):
     out, metrics = straight
     before = sorted(p.relative_to(out) for p in out.rglob("*"))
-    assert cli.main(["--images", str(image_dir), "--probe-only", str(out / "vae.pt"), "--device", "cpu"]) == 0
+    assert cli.main(["--images", str(image_dir), "--probe-only", str(out / "vae.pt"), "--device", "cpu",
+                     "--batch-size", str(TRAIN["batch_size"])]) == 0
     captured = capsys.readouterr()
     probes = json.loads(captured.out)
     assert "near-hole probe, RMSE mm" in captured.err
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
-    # the same weights and frames; only the encoder's batch size differs (float sums in another order)
-    for key in ("r2_x", "r2_y", "r2_z"):
-        assert probes["probe"][key] == pytest.approx(metrics["probe"][key], abs=1e-6)
-    for axis in "xyz":
-        assert probes["probe_near_hole"]["latent_linear_rmse_mm"][axis] == pytest.approx(
-            metrics["probe_near_hole"]["latent_linear_rmse_mm"][axis], rel=1e-5)
-        assert probes["probe_near_hole"]["pixel_baseline_rmse_mm"][axis] == pytest.approx(
-            metrics["probe_near_hole"]["pixel_baseline_rmse_mm"][axis], rel=1e-9)  # no encoder involved
+    # the same weights, frames and encoder batches as the run's own probe, in one process on one
+    # machine: the same float32 latents, the same float64 fits, so the same numbers (to float64
+    # rounding of the JSON round trip: none, floats print exactly)
+    assert probes["probe"] == json.loads(json.dumps(metrics["probe"]))
+    assert probes["probe_near_hole"] == json.loads(json.dumps(metrics["probe_near_hole"]))
     with pytest.raises(SystemExit):
         cli.main(["--images", str(image_dir), "--probe-only", str(out / "missing.pt")])
     assert "--probe-only" in capsys.readouterr().err

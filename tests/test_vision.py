@@ -534,6 +534,12 @@ def test_any_preset_or_collection_change_makes_a_new_cache_entry(tmp_path):
         assert default_vae_dir(tmp_path, "PegInsert", changed) != base_vae, f.name
     cfg = CollectConfig()
     base_images = default_image_dir(tmp_path, cfg)
+    # the camera enters the key as the camera rendered, however its settings were written
+    from vkgrl_newton.sim.camera import TASK_CAMERAS
+
+    table = TASK_CAMERAS["PegInsert"]
+    spelled = dataclasses.replace(cfg, focal_length=table.focal_length, camera_rpy_deg=table.rpy_deg)
+    assert default_image_dir(tmp_path, spelled) == base_images
     collect_changes = {"task": "GearMesh", "family": "forge", "action_dim": 6, "episode_steps": 40,
                        "focal_length": 48.0, "camera_rpy_deg": (0.0, -29.0, 0.0)}
     for f in dataclasses.fields(cfg):

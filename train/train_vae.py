@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from checkpoints/last.pt")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--probe-only", type=Path, default=None, metavar="VAE_PT",
-                    help="train nothing: print both probes of this vae.pt on --images as JSON (writes no file)")
+                    help="train nothing: print both probes of this vae.pt on --images as JSON (writes no file); "
+                         "--batch-size sets the encoder's batch (default 128)")
     return ap
 
 
@@ -109,7 +110,8 @@ def main(argv=None) -> int:
         from vkgrl_newton.vision.train import describe_near_hole_probe, probe_vae
 
         try:
-            probes = probe_vae(args.probe_only, images.dir, device=_device(ap, args.device))
+            probes = probe_vae(args.probe_only, images.dir, batch_size=args.batch_size or 128,
+                               device=_device(ap, args.device))
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--probe-only: {e}")
         print(describe_near_hole_probe(probes["probe_near_hole"]), file=sys.stderr)

@@ -60,17 +60,9 @@ def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int 
     env = AssemblyEnv(EnvConfig(task=task, num_envs=num_worlds, action_dim=4, family="factory", device=device,
                                 graph=mode == "graph", sim=sim or SimConfig(), vision_latent_dim=16 if vision else 0))
     if vision is not None:
-        import dataclasses
+        from ..vision.latent import untrained_preset_latent
 
-        from ..vision.collect import collect_camera_spec
-        from ..vision.latent import CameraLatent
-        from ..vision.pipeline import VISION_PRESETS
-        from ..vision.vae import DenoisingVAE, FrozenEncoder, VAEConfig
-
-        preset = VISION_PRESETS[vision]
-        camera = dataclasses.asdict(collect_camera_spec(preset.collect_config(task)))
-        encoder = FrozenEncoder(DenoisingVAE(VAEConfig(resolution=preset.resolution)), camera=camera)
-        env.attach_vision(CameraLatent(env, encoder))
+        env.attach_vision(untrained_preset_latent(env, vision))
     if policy == "scripted":
         from .scripted import ScriptedInserter
 

@@ -28,7 +28,7 @@ import warp as wp
 
 from .._io import atomic_write_text
 from ..runtime import parse_cli
-from .latent import CameraLatent
+from .latent import CameraLatent, untrained_preset_latent
 from .vae import DenoisingVAE, FrozenEncoder, VAEConfig
 
 
@@ -37,15 +37,13 @@ def measure(num_worlds: int, resolution: int | None, calls: int, device: str | N
     import dataclasses
 
     from ..envs.assembly_env import AssemblyEnv, EnvConfig
-    from .collect import collect_camera_spec
-    from .pipeline import VISION_PRESETS
 
     env = AssemblyEnv(EnvConfig(task=task, num_envs=num_worlds, action_dim=4, family="factory", device=device))
-    camera = None
     if preset is not None:
-        spec = collect_camera_spec(VISION_PRESETS[preset].collect_config(task))
-        camera, resolution = dataclasses.asdict(spec), spec.width
-    latent = CameraLatent(env, FrozenEncoder(DenoisingVAE(VAEConfig(resolution=resolution)), camera=camera))
+        latent = untrained_preset_latent(env, preset)
+        resolution = latent.spec.width
+    else:
+        latent = CameraLatent(env, FrozenEncoder(DenoisingVAE(VAEConfig(resolution=resolution))))
     latent(env)  # warm-up: kernels, BVH build, allocator
     env.step(torch.zeros(num_worlds, 4, device=env.tdev))  # warm-up (graph capture)
     physics = 0.0

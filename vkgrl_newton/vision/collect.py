@@ -194,14 +194,16 @@ def part_shape_ids(env) -> tuple[list[np.ndarray], list[np.ndarray]]:
 
 def collection_key(cfg: CollectConfig) -> str:
     """A short hash of everything that makes an image set what it is: every CollectConfig field
-    but the device, the camera it renders with, the image-set format and the demonstrator's
-    version (its scripted rounds are part of the set)."""
+    but the device, the camera it renders with (resolved: the camera fields enter only through it,
+    so Table 5.6's lens given explicitly or left at None is the same set), the image-set format and
+    the demonstrator's version (its scripted rounds are part of the set)."""
     import hashlib
     import json
 
     from ..envs.scripted import DEMONSTRATOR_VERSION
 
-    fields = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "device"}
+    camera_fields = ("focal_length", "camera_rpy_deg", "samples_per_pixel")
+    fields = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "device" and k not in camera_fields}
     blob = {"config": fields, "camera": dataclasses.asdict(collect_camera_spec(cfg)), "format": IMAGESET_FORMAT,
             "demonstrator": DEMONSTRATOR_VERSION}
     return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:10]
