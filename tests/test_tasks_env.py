@@ -6,6 +6,7 @@ M16 pitch (2 mm per turn), and the authored geometry (assets_usd/dimensions.py).
 part-derived fields against the dimensions, by hand-written formulas.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -75,6 +76,33 @@ def test_gear_scripted_episode_meshes(gear_episode):
     rel = log["held_yaw"][-1] - env.fixed_yaw.numpy()
     off = (rel + pitch / 2) % pitch - pitch / 2
     assert np.all(np.abs(off) < math.radians(3.0))
+
+
+def test_gear_contact_camera_sees_the_target_shaft_and_the_baseline_measures_only_it(gear_episode):
+    """GearMesh's contact camera (the quick preset's) sees the shaft the held gear goes onto, which
+    Table 5.6's camera, looking down the gripper axis onto the held gear, does not; and the near-hole
+    probe's pixel baseline measures the shaft's pixels alone (vision.collect.FIXED_PIXEL_PARTS), not
+    the whole gear base. Reference: the authored stage's shape labels."""
+    from vkgrl_newton.sim.camera import CONTACT_CAMERAS, TASK_CAMERAS, TaskCamera
+    from vkgrl_newton.vision.collect import part_shape_ids
+
+    env, _, _ = gear_episode
+    env.reset()  # the gear above its shaft, as at the start of an episode
+    fixed, held = part_shape_ids(env)
+    labels, per_world = env.scene.labels["shapes"], len(env.scene.labels["shapes"])
+    sockets = env.scene.socket_shapes.numpy()
+    for w in range(env.num_envs):
+        want = [s for s in sockets[w] if labels[s % per_world] == "/gear_mesh/gear_base/shaft"]
+        assert sorted(fixed[w].tolist()) == sorted(want) and len(want) == 1
+        assert all(labels[s % per_world].startswith("/gear_mesh/medium_gear/") for s in held[w])
+
+    def shaft_pixels(spec):
+        spec = dataclasses.replace(spec, width=64, height=64)
+        _, shape_index, _ = TaskCamera(env.model, spec, env.num_envs).render_labelled(env.state_0, *env.hand_pose())
+        return np.array([np.isin(shape_index[w], fixed[w]).sum() for w in range(env.num_envs)])
+
+    contact, table = shaft_pixels(CONTACT_CAMERAS["GearMesh"]), shaft_pixels(TASK_CAMERAS["GearMesh"])
+    assert np.all(contact > 60) and np.all(table == 0), (contact, table)
 
 
 def test_nut_scripted_episode_threads(nut_episode):

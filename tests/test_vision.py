@@ -551,3 +551,16 @@ def test_any_preset_or_collection_change_makes_a_new_cache_entry(tmp_path):
         if f.name in ("scripted_fraction", "val_fraction"):
             new = 0.25
         assert default_image_dir(tmp_path, dataclasses.replace(cfg, **{f.name: new})) != base_images, f.name
+
+
+def test_the_pixel_baselines_fixed_shapes_are_part_of_the_cache_key(tmp_path, monkeypatch):
+    """GearMesh's pixel baseline measures its target shaft alone (collect.FIXED_PIXEL_PARTS): that
+    choice is in the image set's key, so a set measured with another choice is never reused; the
+    tasks without an entry keep the key they had (their baseline is the whole fixed part)."""
+    import vkgrl_newton.vision.collect as collect
+
+    gear, peg = collect.CollectConfig(task="GearMesh"), collect.CollectConfig(task="PegInsert")
+    before = collect.default_image_dir(tmp_path, gear), collect.default_image_dir(tmp_path, peg)
+    monkeypatch.setattr(collect, "FIXED_PIXEL_PARTS", {"GearMesh": "/gear_base/plate"})
+    assert collect.default_image_dir(tmp_path, gear) != before[0]
+    assert collect.default_image_dir(tmp_path, peg) == before[1]

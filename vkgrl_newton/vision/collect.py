@@ -39,7 +39,8 @@ from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_rotate
 from .dataset import IMAGESET_FORMAT, ImageSetWriter
 from .probe import part_pixel_features
 
-__all__ = ["CollectConfig", "collect_images", "default_image_dir", "relative_target_state", "collect_camera_spec"]
+__all__ = ["CollectConfig", "collect_images", "default_image_dir", "relative_target_state", "collect_camera_spec",
+           "part_shape_ids", "FIXED_PIXEL_PARTS"]
 
 
 @dataclass(frozen=True)
@@ -131,6 +132,7 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
             "scripted_fraction": cfg.scripted_fraction, "frame_stride": cfg.frame_stride,
             "noise_offset": cfg.noise_offset, "noise_step": cfg.noise_step, "episode_steps": cfg.episode_steps,
             "camera": dataclasses.asdict(spec),
+            "fixed_pixels": FIXED_PIXEL_PARTS.get(cfg.task, "the whole fixed part"),
             "state": "fixed tip relative to the TCP in the TCP frame (x, y, z, m), relative yaw (rad)"}
     # the writer first: a non-empty out_dir is refused before anything is built
     writer = ImageSetWriter(out_dir, cfg.num_images, cfg.resolution, cfg.task, cfg.val_fraction, cfg.seed, meta)
@@ -184,9 +186,26 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
     return out_dir
 
 
+# The fixed part's shapes whose pixels the near-hole probe's pixel baseline measures, where that is
+# not the whole fixed part: the label suffix of the one feature the held part must reach. GearMesh's
+# fixed part is the base plate with the two flanking gears (~20x the shaft's area, often cut by
+# the image border), so its centroid says little about where the one shaft is.
+FIXED_PIXEL_PARTS = {"GearMesh": "/gear_base/shaft"}
+
+
 def part_shape_ids(env) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Per world, the global shape indices of the fixed part and of the held part."""
+    """Per world, the global shape indices of the fixed part (for GearMesh only its target shaft,
+    `FIXED_PIXEL_PARTS`) and of the held part."""
     fixed = [np.asarray(row) for row in env.scene.socket_shapes.numpy()]
+    suffix = FIXED_PIXEL_PARTS.get(env.cfg.task)
+    if suffix is not None:
+        per_world = len(env.scene.labels["shapes"])  # the template's shapes, replicated per world
+        keep = [np.array([s for s in row if env.scene.labels["shapes"][s % per_world].endswith(suffix)])
+                for row in fixed]
+        if any(len(k) == 0 for k in keep):
+            raise ValueError(f"{env.cfg.task}: no fixed-part shape is labelled *{suffix}; re-author the stage "
+                             "(assets_usd/author.py)")
+        fixed = keep
     shape_body = env.model.shape_body.numpy()
     held = [np.flatnonzero(shape_body == b) for b in env.scene.held_body.numpy()]
     return fixed, held
@@ -206,6 +225,8 @@ def collection_key(cfg: CollectConfig) -> str:
     fields = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "device" and k not in camera_fields}
     blob = {"config": fields, "camera": dataclasses.asdict(collect_camera_spec(cfg)), "format": IMAGESET_FORMAT,
             "demonstrator": DEMONSTRATOR_VERSION}
+    if cfg.task in FIXED_PIXEL_PARTS:  # the pixel baseline's fixed shapes (only where not the whole part)
+        blob["fixed_pixels"] = FIXED_PIXEL_PARTS[cfg.task]
     return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:10]
 
 
