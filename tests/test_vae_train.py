@@ -360,3 +360,39 @@ def test_probe_vae_refuses_images_of_another_camera(image_dir, straight, tmp_pat
     save_vae(tmp_path / "vae.pt", vae, vae.config, {**payload["meta"], "camera": {"focal_length": 24.0}})
     with pytest.raises(ValueError, match="probe it on images of its own camera"):
         probe_vae(tmp_path / "vae.pt", other)
+
+
+def test_probe_vae_pools_image_sets(image_dir, straight, tmp_path, cli, capsys):
+    """Several image sets are pooled: fitted on all training splits, scored on all validation
+    splits, the episodes of each set counted apart (a copy has the same episode ids). Reference:
+    a set pooled with its own copy is every row twice, which leaves a least-squares fit (ridge
+    scaled by the row count, as both probes do) and the mean predictor unchanged, so their errors
+    equal the set's own to float64 rounding, with twice the frames and episodes."""
+    import shutil
+
+    from vkgrl_newton.vision.train import probe_vae
+
+    out, _ = straight
+    copy = tmp_path / "copy"
+    shutil.copytree(image_dir, copy)
+    one = probe_vae(out / "vae.pt", image_dir, batch_size=16)
+    two = probe_vae(out / "vae.pt", [image_dir, copy], batch_size=16)
+    assert two["image_sets"] == [str(ImageSet(image_dir).dir), str(ImageSet(copy).dir)]
+    a, b = one["probe_near_hole"], two["probe_near_hole"]
+    assert (b["num_fit"], b["num_images"], b["num_episodes"]) == (2 * a["num_fit"], 2 * a["num_images"],
+                                                                   2 * a["num_episodes"])
+    for key in ("latent_linear_rmse_mm", "mean_predictor_rmse_mm", "pixel_baseline_linear_rmse_mm"):
+        for axis in ("x", "y", "z"):
+            # rel 1e-7: float64 sums in another order, through a fit of condition << 1e9
+            assert b[key][axis] == pytest.approx(a[key][axis], rel=1e-7, abs=1e-9), (key, axis)
+    assert (two["probe"]["num_fit"], two["probe"]["num_score"]) == (2 * one["probe"]["num_fit"],
+                                                                     2 * one["probe"]["num_score"])
+    for name in PROBE_TARGETS:
+        assert two["probe"][f"r2_{name}"] == pytest.approx(one["probe"][f"r2_{name}"], rel=1e-7, abs=1e-9)
+    # the CLI takes several sets only to probe
+    assert cli.main(["--images", str(image_dir), str(copy), "--probe-only", str(out / "vae.pt"), "--device",
+                     "cpu", "--batch-size", "16"]) == 0
+    assert json.loads(capsys.readouterr().out)["probe_near_hole"]["num_images"] == b["num_images"]
+    with pytest.raises(SystemExit):
+        cli.main(["--images", str(image_dir), str(copy), "--out", str(tmp_path / "run"), "--device", "cpu"])
+    assert "several only with --probe-only" in capsys.readouterr().err

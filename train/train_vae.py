@@ -6,6 +6,8 @@
     python train/train_vae.py --images runs/images/PegInsert_r64 --device cpu --epochs 40 \
         --batch-size 32 --kl-weight 0.01 --no-group-norm        # the quick preset's CPU settings
     python train/train_vae.py --images DIR --probe-only runs/vae/peg/vae.pt   # probes only, as JSON
+    python train/train_vae.py --images S1 S2 --probe-only runs/vae/peg/vae.pt # probes fitted and scored
+                                                                              # on two sets pooled
 
 Thesis settings by default: Adam lr 1e-3, batch 128, 400 epochs, the Table 5.5 augmentations on
 the encoder input. The run directory (default runs/vae/<task>_r<resolution>_<date-time>) holds
@@ -47,7 +49,10 @@ DEFAULTS = {"epochs": 400, "batch_size": 128, "lr": 1e-3, "seed": 0, "kl_weight"
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    ap.add_argument("--images", type=Path, required=True, help="image set directory (vision.dataset.ImageSetWriter)")
+    ap.add_argument("--images", type=Path, required=True, nargs="+",
+                    help="image set directory (vision.dataset.ImageSetWriter); with --probe-only several sets "
+                         "may be given, pooled: the probes are fitted on all their training splits and scored on "
+                         "all their validation splits")
     ap.add_argument("--out", type=Path, default=None,
                     help="run directory (default runs/vae/<task>_r<resolution>_<date-time>)")
     ap.add_argument("--epochs", type=positive_int, default=None,
@@ -100,17 +105,21 @@ def _device(ap: argparse.ArgumentParser, text: str | None) -> str:
 def main(argv=None) -> int:
     ap = build_parser()
     args = parse_cli(ap, argv)
+    if len(args.images) > 1 and args.probe_only is None:
+        ap.error(f"--images: {len(args.images)} image sets given; a VAE trains on one (several only with --probe-only)")
     try:
-        images = ImageSet(args.images)
+        sets = [ImageSet(d) for d in args.images]
     except (FileNotFoundError, ValueError) as e:
         ap.error(f"--images: {e}")
+    images = sets[0]
     if args.probe_only is not None:
         import json
 
         from vkgrl_newton.vision.train import describe_near_hole_probe, probe_vae
 
         try:
-            probes = probe_vae(args.probe_only, images.dir, batch_size=args.batch_size or 128,
+            probes = probe_vae(args.probe_only, [s.dir for s in sets] if len(sets) > 1 else images.dir,
+                               batch_size=args.batch_size or 128,
                                device=_device(ap, args.device))
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--probe-only: {e}")
@@ -145,7 +154,7 @@ def main(argv=None) -> int:
         this_set = {"task": images.task, "resolution": images.resolution, "image_count": len(images),
                     "num_train": len(images.train_idx), "num_val": len(images.val_idx)}
         if same_set != this_set:
-            ap.error(f"--images {args.images} ({this_set}) is not the image set the run in {args.out} was trained "
+            ap.error(f"--images {images.dir} ({this_set}) is not the image set the run in {args.out} was trained "
                      f"on ({meta['image_dir']}: {same_set})")
         run_device = payload["extra"]["noise_device"]
         if args.device is None:
