@@ -500,6 +500,10 @@ def test_presets_and_their_cache_names(tmp_path):
 
     for task, spec in TASK_CAMERAS.items():  # the thesis preset renders Table 5.6's camera at 256 px
         assert collect_camera_spec(thesis.collect_config(task)) == dataclasses.replace(spec, width=256, height=256)
+    from vkgrl_newton.sim.camera import CONTACT_CAMERAS
+
+    for task, spec in CONTACT_CAMERAS.items():  # the quick preset renders the contact camera, all of it
+        assert collect_camera_spec(quick.collect_config(task)) == dataclasses.replace(spec, width=64, height=64)
     key = collection_key(thesis.collect_config("PegInsert"))
     assert default_vae_dir(tmp_path, "PegInsert", thesis) == (
         tmp_path / "PegInsert" / f"vae_v1_r256_n130000_e400_seed0_{key}")
@@ -541,7 +545,7 @@ def test_any_preset_or_collection_change_makes_a_new_cache_entry(tmp_path):
     spelled = dataclasses.replace(cfg, focal_length=table.focal_length, camera_rpy_deg=table.rpy_deg)
     assert default_image_dir(tmp_path, spelled) == base_images
     collect_changes = {"task": "GearMesh", "family": "forge", "action_dim": 6, "episode_steps": 40,
-                       "focal_length": 48.0, "camera_rpy_deg": (0.0, -29.0, 0.0)}
+                       "focal_length": 48.0, "camera_rpy_deg": (0.0, -29.0, 0.0), "camera_pos_hand": (0.0, 0.08, 0.11)}
     for f in dataclasses.fields(cfg):
         if f.name == "device":
             assert default_image_dir(tmp_path, dataclasses.replace(cfg, device="cuda:0")) == base_images

@@ -74,7 +74,7 @@ def main(argv=None) -> int:
                 changes[name] = getattr(args, name)
         if args.camera is not None:
             spec = CAMERA_SETS[args.camera][args.task]
-            changes.update(focal_length=spec.focal_length, camera_rpy_deg=spec.rpy_deg)
+            changes.update(focal_length=spec.focal_length, camera_rpy_deg=spec.rpy_deg, camera_pos_hand=spec.pos_hand)
         cfg = dataclasses.replace(base, **changes)
     except ValueError as e:
         ap.error(str(e))

@@ -62,6 +62,7 @@ class CollectConfig:
     # the camera: Table 5.6's pose and lens (sim.camera.TASK_CAMERAS) unless overridden here
     focal_length: float | None = None  # mm; None: Table 5.6's (Isaac Lab's 24 mm)
     camera_rpy_deg: tuple[float, float, float] | None = None  # None: Table 5.6's mount angles
+    camera_pos_hand: tuple[float, float, float] | None = None  # m, in the hand frame; None: Table 5.6's
     samples_per_pixel: int = 1  # > 1: multisample anti-aliasing
 
     def __post_init__(self) -> None:
@@ -93,7 +94,9 @@ def collect_camera_spec(cfg: CollectConfig):
                                focal_length=base.focal_length if cfg.focal_length is None else float(cfg.focal_length),
                                samples_per_pixel=cfg.samples_per_pixel,
                                rpy_deg=base.rpy_deg if cfg.camera_rpy_deg is None
-                               else tuple(float(a) for a in cfg.camera_rpy_deg))
+                               else tuple(float(a) for a in cfg.camera_rpy_deg),
+                               pos_hand=base.pos_hand if cfg.camera_pos_hand is None
+                               else tuple(float(a) for a in cfg.camera_pos_hand))
 
 
 def relative_target_state(env) -> torch.Tensor:
@@ -221,7 +224,7 @@ def collection_key(cfg: CollectConfig) -> str:
 
     from ..envs.scripted import DEMONSTRATOR_VERSION
 
-    camera_fields = ("focal_length", "camera_rpy_deg", "samples_per_pixel")
+    camera_fields = ("focal_length", "camera_rpy_deg", "camera_pos_hand", "samples_per_pixel")
     fields = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "device" and k not in camera_fields}
     blob = {"config": fields, "camera": dataclasses.asdict(collect_camera_spec(cfg)), "format": IMAGESET_FORMAT,
             "demonstrator": DEMONSTRATOR_VERSION}

@@ -32,7 +32,9 @@ budget or does not see the hole well enough:
 - the "contact" cameras (sim.camera.CONTACT_CAMERAS): PegInsert's Table 5.6 camera re-aimed at the
   peg's tip with a 48 mm lens, ~1 mm per pixel where the parts meet instead of ~2 (the near-hole
   probe: the latent locates the hole to 0.51 / 0.18 mm on x / y against 0.85 / 0.28 with Table
-  5.6's reading, on the same states); GearMesh's and NutThread's are Table 5.6's;
+  5.6's reading, on the same states); GearMesh's looks from beside the hand under the held gear's
+  rim at the shaft it must go onto, which Table 5.6's camera (down the gripper axis, onto the
+  gear) does not see; NutThread's is Table 5.6's;
 - collection rounds of 60 control steps (4 s) instead of whole episodes and 20 % of the episodes
   held out: ~200 episodes in the set instead of ~100, ~30 held-out episodes near the hole for the
   near-hole probe instead of ~7 (one episode's error moved the RMSE by 0.1 mm).
@@ -82,7 +84,8 @@ class VisionPreset:
         spec = CAMERA_SETS[self.camera][task]
         return CollectConfig(task=task, num_images=self.num_images, resolution=self.resolution, num_envs=num_envs,
                              seed=self.seed, device=device, focal_length=spec.focal_length,
-                             camera_rpy_deg=spec.rpy_deg, samples_per_pixel=self.samples_per_pixel,
+                             camera_rpy_deg=spec.rpy_deg, camera_pos_hand=spec.pos_hand,
+                             samples_per_pixel=self.samples_per_pixel,
                              val_fraction=self.val_fraction, episode_steps=self.episode_steps)
 
 
