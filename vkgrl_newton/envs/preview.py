@@ -1,16 +1,19 @@
 """Render the task camera (thesis Table 5.6) of a few worlds into one PNG.
 
     python -m vkgrl_newton.envs.preview --task PegInsert --out peg_camera.png
+    python -m vkgrl_newton.envs.preview --task GearMesh --camera contact --out gear_contact.png
 
 The worlds are reset (Table 5.2 randomization) and the scripted demonstrator runs `--steps`
 control steps (default 18: the peg is above the hole, the approach under way), then each world's
-hand camera renders one 256 x 256 image; the images are tiled left to right, world 0 first.
+hand camera (`--camera`: Table 5.6's, or the quick preset's contact camera) renders one
+`--resolution` square image (default 256); the images are tiled left to right, world 0 first.
 An existing output file is never overwritten.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import io
 import sys
 from pathlib import Path
@@ -19,7 +22,7 @@ import numpy as np
 
 from .._io import atomic_write
 from ..runtime import parse_cli
-from ..sim.camera import TASK_CAMERAS, TaskCamera
+from ..sim.camera import CAMERA_SETS, TaskCamera
 from ..sim.scene import GEOMETRIES, SimConfig, geometry_error
 from ..tasks import TASKS
 from .assembly_env import AssemblyEnv, EnvConfig
@@ -27,7 +30,7 @@ from .scripted import ScriptedInserter
 
 
 def render_preview(task: str, num_worlds: int, steps: int, seed: int = 0, device: str | None = None,
-                   geometry: str = "primitives") -> np.ndarray:
+                   geometry: str = "primitives", camera: str = "table5.6", resolution: int = 256) -> np.ndarray:
     """uint8 (H, num_worlds * W, 3): the task camera of each world after `steps` scripted steps."""
     env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_worlds, device=device,
                                 seed=seed, sim=SimConfig(geometry=geometry)))
@@ -36,8 +39,10 @@ def render_preview(task: str, num_worlds: int, steps: int, seed: int = 0, device
     policy.reset(env)
     for _ in range(steps):
         env.step_pose(*policy.act(env))
-    camera = TaskCamera(env.model, TASK_CAMERAS[task], num_worlds)
-    images = camera.render(env.state_0, *env.hand_pose())
+    if camera not in CAMERA_SETS:
+        raise ValueError(f"render_preview: camera={camera!r}; allowed: {sorted(CAMERA_SETS)}")
+    spec = dataclasses.replace(CAMERA_SETS[camera][task], width=resolution, height=resolution)
+    images = TaskCamera(env.model, spec, num_worlds).render(env.state_0, *env.hand_pose())
     return np.concatenate(list(images), axis=1)
 
 
@@ -50,16 +55,22 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES, help="GearMesh/NutThread part geometry")
+    ap.add_argument("--camera", default="table5.6", choices=sorted(CAMERA_SETS),
+                    help="table5.6 (the thesis's cameras) or contact (the quick vision preset's)")
+    ap.add_argument("--resolution", type=int, default=256, help="square image side in pixels (>= 8)")
     args = parse_cli(ap, argv, device=True)
     if args.num_worlds < 1:
         ap.error("--num-worlds must be >= 1")
     if args.steps < 0:
         ap.error("--steps must be >= 0")
+    if args.resolution < 8:
+        ap.error("--resolution must be >= 8")
     if geometry_error(args.task, args.geometry):
         ap.error(f"--{geometry_error(args.task, args.geometry)}")
     if args.out.exists():
         ap.error(f"--out {args.out} exists; choose another path (files are never overwritten)")
-    tiled = render_preview(args.task, args.num_worlds, args.steps, args.seed, args.device, args.geometry)
+    tiled = render_preview(args.task, args.num_worlds, args.steps, args.seed, args.device, args.geometry, args.camera,
+                           args.resolution)
 
     import matplotlib.pyplot as plt
 

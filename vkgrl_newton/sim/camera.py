@@ -88,6 +88,8 @@ TASK_CAMERAS = {
 # shafts when the gear is aligned to mesh), 3 cm above the held gear's bottom, and looks 58 degrees
 # off the gripper axis, under the gear's rim, through the lower shaft (0.16 m along the hand z):
 # the shaft, the flanking gears' teeth and the held gear's lower teeth are in view, 48 mm lens.
+# Measured on unseen episodes: the shaft's pixels locate it to 0.2 mm, the quick VAE's latent to
+# 1.3 / 0.85 mm (x / y), against a spread of 3.2 / 4.8.
 # NutThread: Table 5.6's camera already looks down the nut's bore at the bolt.
 CONTACT_CAMERAS = {
     "PegInsert": CameraSpec(pos_hand=(0.08, 0.0, 0.0), rpy_deg=(0.0, -29.0, 0.0), focal_length=48.0),
