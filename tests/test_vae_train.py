@@ -360,6 +360,8 @@ def test_probe_vae_refuses_images_of_another_camera(image_dir, straight, tmp_pat
     save_vae(tmp_path / "vae.pt", vae, vae.config, {**payload["meta"], "camera": {"focal_length": 24.0}})
     with pytest.raises(ValueError, match="probe it on images of its own camera"):
         probe_vae(tmp_path / "vae.pt", other)
+    with pytest.raises(ValueError, match="pool sets of one camera"):  # the synthetic set records none
+        probe_vae(out / "vae.pt", [image_dir, other])
 
 
 def test_probe_vae_pools_image_sets(image_dir, straight, tmp_path, cli, capsys):

@@ -15,8 +15,9 @@ the fixed part's tip relative to the TCP, in the TCP frame (x, y, z, m), and the
 (fixed yaw - TCP yaw, wrapped to [-pi, pi)). The VAE never sees it; the linear probe checks that
 the latent carries it. Beside it, for the near-hole probe (`vision.probe.near_hole_probe`): the
 geometry of the frame (held part, fixed tip, the image's frame in the world: `GEOMETRY_COLUMNS`)
-and privileged pixel measurements of both parts from a shape-index and a depth render of the
-same camera (`PIXEL_COLUMNS`: what the image itself allows, the probe's baseline).
+and privileged pixel measurements of both parts (of GearMesh's fixed part, its target shaft:
+`FIXED_PIXEL_PARTS`) from a shape-index and a depth render of the same camera (`PIXEL_COLUMNS`:
+what the image itself allows, the probe's baseline).
 
 Episodes are numbered episode_round * num_envs + world, so the writer's train/validation split is
 by (world, episode): frames of one trajectory never straddle the split.
@@ -191,8 +192,8 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
 
 # The fixed part's shapes whose pixels the near-hole probe's pixel baseline measures, where that is
 # not the whole fixed part: the label suffix of the one feature the held part must reach. GearMesh's
-# fixed part is the base plate with the two flanking gears (~20x the shaft's area, often cut by
-# the image border), so its centroid says little about where the one shaft is.
+# fixed part is the base plate with the two flanking gears (many times the shaft's area, often cut
+# by the image border), so its centroid says little about where the one shaft is.
 FIXED_PIXEL_PARTS = {"GearMesh": "/gear_base/shaft"}
 
 

@@ -293,6 +293,9 @@ def probe_vae(vae_path, image_dir, batch_size: int = 128, device: str | torch.de
             raise ValueError(f"probe_vae: image set {images.dir} is {images.task} at {images.resolution} px, "
                              f"{first.dir} is {first.task} at {first.resolution} px: pool sets of one task and resolution")
         shown = images.meta.get("camera")
+        if shown != first.meta.get("camera"):
+            raise ValueError(f"probe_vae: image sets {first.dir} and {images.dir} were taken with different cameras "
+                             f"({first.meta.get('camera')} and {shown}): pool sets of one camera")
         if trained_on is not None and shown is not None and trained_on != shown:
             raise ValueError(f"VAE {vae_path} was trained on images of camera {trained_on}, the image set {images.dir} "
                              f"was taken with {shown}: probe it on images of its own camera")
