@@ -118,8 +118,7 @@ def main(argv=None) -> int:
         from vkgrl_newton.vision.train import describe_near_hole_probe, probe_vae
 
         try:
-            probes = probe_vae(args.probe_only, [s.dir for s in sets] if len(sets) > 1 else images.dir,
-                               batch_size=args.batch_size or 128,
+            probes = probe_vae(args.probe_only, [s.dir for s in sets], batch_size=args.batch_size or 128,
                                device=_device(ap, args.device))
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--probe-only: {e}")
