@@ -56,16 +56,35 @@ def state(run_dir: Path) -> dict:
 
 
 def checkpointed_transitions(run_dir: Path) -> int:
-    rows = read_curves(run_dir)
-    return int(rows[-1]["transitions"]) if rows else 0
+    """The transitions the trial's checkpoint holds: what a resume starts from. (Not curves.jsonl:
+    a row is appended before the checkpoint that covers it is written, so a kill between the two
+    resumes from the checkpoint before and drops that row.) The checkpoint is renamed into place
+    atomically, so a read sees the old file or the new one, never a torn one."""
+    from vkgrl_newton.agents.checkpoint import load_checkpoint
+
+    try:
+        return int(load_checkpoint(run_dir / "checkpoints" / "last.pt", required=("counters",))
+                   ["counters"]["transitions"])
+    except (FileNotFoundError, ValueError):
+        return 0
+
+
+def resumed_at(run_dir: Path) -> int:
+    """The transitions of the checkpoint the trial's last attempt resumed from (run.py's log line)."""
+    lines = [ln for ln in (run_dir / "train.log").read_text().splitlines() if ln.startswith("resumed ")]
+    assert lines, (run_dir / "train.log").read_text()
+    return int(lines[-1].split(" at ")[-1].split()[0])
 
 
 def assert_finished(run_dir: Path, resumed: bool = False) -> dict:
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["training"]["transitions"] == 900
     steps = [r["transitions"] for r in read_curves(run_dir)]  # a row per episode of the 2 worlds
-    if resumed:  # episodes restart at the resume point: rows after it move, none is kept twice
-        assert steps[0] == 300 and all(a < b <= 900 for a, b in zip(steps, steps[1:])), steps
+    if resumed:  # the rows up to the checkpoint resumed from stay; episodes restart there (300 each)
+        at = resumed_at(run_dir)
+        assert at >= 300, at  # the kill came after a checkpoint of >= 300 transitions
+        expected = [s for s in (300, 600, 900) if s <= at] + list(range(at + 300, 901, 300))
+        assert steps == expected, (at, steps)
     else:
         assert steps == [300, 600, 900]
     return metrics
