@@ -184,6 +184,12 @@ def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatc
     assert "train/critic_loss" in scalars and all(math.isfinite(v) for v in scalars["train/critic_loss"])
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["training"]["transitions"] == 40
+    assert json.loads((run_dir / "metrics_at_16.json").read_text())["training"]["transitions"] == 16  # kept aside
+
+    # a finished run resumed without a larger --total-steps says so and changes nothing
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} | {"ckpt": ckpt_path.read_bytes()}
+    assert run_py.main(["--run-dir", str(run_dir), "--resume", "--no-progress", "--eval-episodes", "3"]) == 0
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} | {"ckpt": ckpt_path.read_bytes()} == before
 
     # a damaged checkpoint is a clear error, never a silent restart
     data = ckpt_path.read_bytes()

@@ -19,7 +19,6 @@ camera of the first worlds as a GIF. Existing output files are never overwritten
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -29,11 +28,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton.cli_types import positive_int  # noqa: E402
 
-from vkgrl_newton._io import atomic_write_text  # noqa: E402
+from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
 from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,  # noqa: E402
                                             ZeroPolicy, evaluate, write_video)
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
 from vkgrl_newton.cache import check_run_files  # noqa: E402
+from vkgrl_newton.results.paired import EVAL_SEED, seed_evaluation  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.sim.scene import GEOMETRIES, SOLVERS, SimConfig, geometry_error  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
@@ -50,7 +50,11 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint", type=Path, default=None, help="a train/run.py checkpoint (replaces --policy)")
     ap.add_argument("--num-envs", type=positive_int, default=16)
     ap.add_argument("--episodes", type=positive_int, default=2)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="the env's construction and the scripted/random policies' draws")
+    ap.add_argument("--eval-seed", type=int, default=EVAL_SEED,
+                    help="seeds the evaluation episodes, as train/run.py's --eval-seed: two policies evaluated with one "
+                         "eval seed (and the same task, env, action space and worlds) see identical initial states "
+                         "(default %(default)s)")
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--eager-physics", action="store_true",
                     help="launch the physics kernels one by one instead of one captured graph per control step "
@@ -139,14 +143,17 @@ def main(argv=None) -> int:
         from vkgrl_newton.sim.camera import TASK_CAMERAS, TaskCamera
 
         frames, camera = [], TaskCamera(env.model, TASK_CAMERAS[args.task], env.num_envs)
+    seed_evaluation(env, args.eval_seed)
     result = evaluate(env, policy, args.episodes, video_frames=frames, camera=camera,
                       desc=f"{args.policy} {args.env} {args.action_dim}D")
     result.update(task=args.task, env=args.env, action_dim=args.action_dim, policy=args.policy,
                   num_envs=args.num_envs, device=env.device, solver=args.solver, geometry=args.geometry, seed=args.seed,
+                  eval_seed=args.eval_seed,
                   time_obs=not args.no_time_obs, checkpoint=str(args.checkpoint) if args.checkpoint else None)
-    print(json.dumps({k: v for k, v in result.items() if k != "per_episode"}, indent=2))
+    print(strict_json({k: v for k, v in result.items() if k != "per_episode"}, indent=2))
+    print(f"{result['episodes']} episodes: {args.num_envs} worlds x {args.episodes} per world")
     if args.json is not None:
-        atomic_write_text(args.json, json.dumps(result, indent=2))  # FileExistsError rather than overwrite
+        atomic_write_text(args.json, strict_json(result, indent=2))  # FileExistsError rather than overwrite
     if frames:
         write_video(args.video, frames)
         print(f"wrote {args.video} ({len(frames)} frames)")

@@ -37,6 +37,7 @@ import contextlib
 import dataclasses
 import json
 import math
+import re
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -48,14 +49,16 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton.cli_types import positive_int  # noqa: E402
+from vkgrl_newton.signals import exit_code, stop_signals_as_interrupts  # noqa: E402
 
-from vkgrl_newton._io import atomic_write_text  # noqa: E402
+from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
 from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_checkpoint  # noqa: E402
 from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
 from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.cache import check_run_files  # noqa: E402
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
 from vkgrl_newton.results.curves import CURVES_FILE, CurveWriter  # noqa: E402
+from vkgrl_newton.results.paired import EVAL_SEED, format_gain, paired_gain, seed_evaluation, world_outcomes  # noqa: E402
 from vkgrl_newton.runtime import add_verbose_flag, configure_warp, default_device  # noqa: E402
 from vkgrl_newton.sim.scene import GEOMETRIES, SimConfig, geometry_error  # noqa: E402
 from vkgrl_newton.tasks import METHODS, TASKS  # noqa: E402
@@ -74,6 +77,7 @@ RUN_DEFAULTS = {
 # actions, and its std is capped at 0.3 (log -1.2). Uniform or std ~1 actions put the part ~7 mm
 # off the prior against a 0.06 mm clearance, and without the cap the entropy term (alpha = 1,
 # flat early Q) grows a 0.1 std to ~1 within ~100 actor updates (docs/benchmarks.md).
+EVAL_MIN_EPISODES = 128  # sd of a success rate <= 0.5 / sqrt(128) = 0.044 over the evaluation episodes
 CURVE_EPISODE_KEYS = ("episode_reward", "success_rate", "success_rate_any", "mean_contact_force",
                       "peak_contact_force", "time_to_first_success_s")  # the env's episode log -> curves.jsonl
 KGRL_EXPLORATION = {"warmup": "policy", "actor_init_std": 0.1, "log_std_max": -1.2}
@@ -106,13 +110,22 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-time-obs", action="store_true",
                     help="drop normalized time from the policy input (thesis A.1; the KMP still uses it)")
     ap.add_argument("--checkpoint-every", type=positive_int, default=None, help="transitions between checkpoints")
-    ap.add_argument("--eval-episodes", type=int, default=2, help="final deterministic evaluation episodes (0: none)")
+    ap.add_argument("--eval-episodes", type=int, default=None,
+                    help="final deterministic evaluation: episodes per world, all worlds at once (0: none; default: "
+                         f"enough for >= {EVAL_MIN_EPISODES} episodes, a success rate's standard error <= 0.045); "
+                         "KGRL methods evaluate their prior (a = 0) on the same episodes")
+    ap.add_argument("--eval-seed", type=int, default=EVAL_SEED,
+                    help="seeds the evaluation episodes (train/evaluate.py's --eval-seed means the same): two policies "
+                         "evaluated with one eval seed see identical initial states (default %(default)s)")
     ap.add_argument("--demos", type=Path, default=None, help="KGRL: your own demonstrations (npz)")
     ap.add_argument("--num-demos", type=int, default=16, help="KGRL: scripted demonstrations to record")
     ap.add_argument("--vae", type=Path, default=None,
                     help="vision methods: your own trained vae.pt (train/train_vae.py) instead of the cached one")
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
                     help="demonstrations, KMP tables, image sets, VAEs")
+    ap.add_argument("--label", default=None,
+                    help="a name for the run's variant (e.g. the options it tries), recorded in config.json and "
+                         "metrics.json; train/report.py shows runs of another label as another row")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
                     help="step the env in a worker thread while the SAC update of the previous transitions runs "
@@ -165,6 +178,8 @@ def run_meta(args, obs_dim: int, sac_cfg) -> dict:
             "obs_dim": obs_dim, "sac": dataclasses.asdict(sac_cfg)}
     if args.geometry != "primitives":  # absent in the default case, so older checkpoints still resume
         meta["geometry"] = args.geometry
+    if getattr(args, "label", None):  # absent unless given, so older runs still resume
+        meta["label"] = args.label
     if uses_vision(args.method):
         meta["vision"] = {"vae": str(vae_path(args)), "latent_dim": VISION_LATENT_DIM}
     return meta
@@ -188,7 +203,7 @@ def vae_path(args) -> Path:
 
 
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
-_RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset")
+_RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label")
 
 
 def _explicit_args(argv) -> set[str]:
@@ -215,7 +230,7 @@ def main(argv=None) -> int:
         meta, given = payload["meta"], _explicit_args(argv)
         for name in _RUN_IDENTITY:
             if name not in given:
-                setattr(args, name, meta[name])
+                setattr(args, name, meta.get(name))
         if "no_time_obs" not in given:
             args.no_time_obs = not meta["time_obs"]
         if "geometry" not in given:
@@ -228,7 +243,15 @@ def main(argv=None) -> int:
             check_run_files(meta, demos=args.demos, vae=args.vae)
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--resume: {e}")
-        for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every
+        done_at = int(payload["counters"].get("transitions", 0))
+        if (args.run_dir / "metrics.json").exists() and not ("total_steps" in given and args.total_steps > done_at):
+            # finished: nothing to continue and nothing rewritten (its metrics.json is what report.py reads)
+            print(f"train/run.py: {args.run_dir} is a finished run ({done_at} transitions, "
+                  f"{args.run_dir / 'metrics.json'}); nothing to resume. Train it further with --total-steps N "
+                  f"(> {done_at}); evaluate it again with train/evaluate.py --checkpoint "
+                  f"{args.run_dir / 'checkpoints' / 'last.pt'} --json FILE", file=sys.stderr)
+            return 0
+        for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every, eval_episodes, eval_seed
             if name not in given:
                 setattr(args, name, value)
         if not args.sac:
@@ -242,8 +265,12 @@ def main(argv=None) -> int:
     if args.geometry == "mesh" and uses_vision(args.method):
         ap.error(f"--geometry mesh is for the sac and kgrl methods: the image sets and VAEs of {args.method} "
                  "are made on the primitives")
-    if args.eval_episodes < 0:
-        ap.error("--eval-episodes must be >= 0")
+    if args.eval_episodes is not None and args.eval_episodes < 0:
+        ap.error(f"--eval-episodes {args.eval_episodes}: must be >= 0 (episodes per world; 0: no final evaluation)")
+    if args.label is not None and not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", args.label):
+        ap.error(f"--label {args.label!r}: 1-40 characters of letters, digits, '_', '.', '-'")
+    if not 0 <= args.eval_seed < 2**63:
+        ap.error(f"--eval-seed {args.eval_seed}: must be in [0, 2**63)")
     if args.num_demos < 2:
         ap.error("--num-demos must be >= 2")
     try:
@@ -262,11 +289,17 @@ def main(argv=None) -> int:
     args.num_envs = args.num_envs or defaults["num_envs"]
     args.total_steps = args.total_steps or defaults["total_steps"]
     args.checkpoint_every = args.checkpoint_every or defaults["checkpoint_every"]
+    if args.eval_episodes is None:
+        args.eval_episodes = -(-EVAL_MIN_EPISODES // args.num_envs)
     run_dir = args.run_dir or Path("runs/train") / (f"{args.task}_{args.method}_{args.env}_{args.action_dim}d_"
                                                      f"seed{args.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
     ckpt_path = run_dir / "checkpoints" / "last.pt"
     if not args.resume and any((run_dir / name).exists() for name in RUN_FILES):
         ap.error(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another directory")
+    prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(args.sac_config, f)]
+    if prior_only and not uses_kmp(args.method):
+        ap.error(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl methods "
+                 f"(kgrl, vision_kgrl), not {args.method!r}")
     args.latent_dim = VISION_LATENT_DIM if uses_vision(args.method) else 0
     if args.vae is not None and not uses_vision(args.method):
         ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
@@ -289,7 +322,8 @@ def main(argv=None) -> int:
             check_meta(saved, now, ckpt_path)
         except ValueError as e:
             ap.error(f"--resume: {e}")
-    return train(args, run_dir, ckpt_path, payload)
+    with stop_signals_as_interrupts():  # SIGTERM / SIGHUP: checkpoint and exit like Ctrl-C
+        return train(args, run_dir, ckpt_path, payload)
 
 
 
@@ -321,9 +355,9 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         except (FileExistsError, FileNotFoundError, ValueError) as e:
             print(f"train/run.py: the vision prerequisites: {e}", file=sys.stderr)
             return 2
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:
             log("interrupted while preparing the image set or the VAE; run again to continue")
-            return 130
+            return exit_code(e)
         if encoder.latent_dim != args.latent_dim:
             raise SystemExit(f"train/run.py: the VAE's latent has {encoder.latent_dim} dimensions, the vision "
                              f"methods use {args.latent_dim} (thesis 5.6)")
@@ -372,15 +406,13 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         log(f"resumed {run_dir} at {counters['transitions']} transitions")
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(run_dir / "config.json", json.dumps({**meta, "total_steps": args.total_steps,
-                                                               "checkpoint_every": args.checkpoint_every,
-                                                               "device": args.device}, indent=2))
+        atomic_write_text(run_dir / "config.json", strict_json({**meta, **plan(args), "device": args.device},
+                                                               indent=2))
 
     def checkpoint() -> None:
         save_checkpoint(ckpt_path, {"meta": meta, "counters": dict(counters), "agent": agent.state_dict(),
                                     "pending_update": pending_update,  # overlapped loop: due, not yet run
-                                    "rng": _rng_state(env), "plan": {"total_steps": args.total_steps,
-                                                                     "checkpoint_every": args.checkpoint_every}})
+                                    "rng": _rng_state(env), "plan": plan(args)})
 
     writer = SummaryWriter(str(run_dir / "tb"), purge_step=counters["transitions"] if payload else None)
     curves = CurveWriter(run_dir, resume_at=counters["transitions"] if payload else None)
@@ -485,7 +517,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         if pending_update:  # the last step's update: as many gradient steps as the serial loop
             run_update()
             pending_update = False
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         if future is not None:  # let the worker finish its env step (its transition is dropped)
             with contextlib.suppress(BaseException):
                 future.result()
@@ -493,8 +525,9 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         checkpoint()
         bar.close()
         writer.close()
-        log(f"interrupted; checkpoint at {counters['transitions']} transitions in {ckpt_path} (--resume continues)")
-        return 130
+        log(f"{e or 'interrupted'}; checkpoint at {counters['transitions']} transitions in {ckpt_path} "
+            "(--resume continues)")
+        return exit_code(e)
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
@@ -513,20 +546,72 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                "contact_overflows": env.contact_overflows_total, "first_transition_unix": first_transition_unix,
                "resumed": payload is not None}
     metrics: dict = {}
-    if args.eval_episodes:
-        metrics = evaluate(env, AgentPolicy(agent, action_path, time_obs), args.eval_episodes,
-                           progress=not args.no_progress, desc="final evaluation")
-        for k in ("success_rate", "mean_contact_force", "time_to_first_success_s", "mean_episode_reward"):
-            writer.add_scalar(f"eval/{k}", metrics[k], counters["transitions"])
+    try:
+        if args.eval_episodes:
+            metrics = final_evaluation(args, env, agent, action_path, time_obs)
+            for k in ("success_rate", "mean_contact_force", "time_to_first_success_s", "mean_episode_reward"):
+                writer.add_scalar(f"eval/{k}", metrics[k], counters["transitions"])
+            if "prior_eval" in metrics:
+                writer.add_scalar("eval/prior_success_rate", metrics["prior_eval"]["success_rate"],
+                                  counters["transitions"])
+    except KeyboardInterrupt as e:  # the checkpoint holds the whole run: --resume evaluates it again
+        writer.close()
+        log(f"{e or 'interrupted'} during the final evaluation; the trained checkpoint is {ckpt_path} "
+            "(--resume evaluates)")
+        return exit_code(e)
     writer.close()
     result = {**metrics, **meta, "device": env.device, "checkpoint": str(ckpt_path), "training": summary}
     result.pop("sac")
     metrics_path = run_dir / "metrics.json"
-    atomic_write_text(metrics_path, json.dumps(result, indent=2), overwrite=True)  # the run's own file
+    if metrics_path.exists():  # a finished run trained further: its earlier result stays beside the new one
+        earlier = json.loads(metrics_path.read_text()).get("training", {}).get("transitions", "earlier")
+        aside = run_dir / f"metrics_at_{earlier}.json"
+        if not aside.exists():
+            metrics_path.rename(aside)
+            log(f"the earlier metrics.json -> {aside}")
+    atomic_write_text(metrics_path, strict_json(result, indent=2), overwrite=True)  # the run's own file
     shown = {k: result[k] for k in ("success_rate", "mean_contact_force", "time_to_first_success_s",
                                     "mean_episode_reward") if k in result}
-    log(f"done: {json.dumps(shown)} -> {metrics_path}")
+    log(f"done: {strict_json(shown)} -> {metrics_path}")
+    if "paired_gain" in metrics:
+        log(paired_line(metrics))
     return 0
+
+
+def plan(args) -> dict:
+    """What a run was asked to do beyond its identity; a resumed run keeps it unless given again."""
+    return {"total_steps": args.total_steps, "checkpoint_every": args.checkpoint_every,
+            "eval_episodes": args.eval_episodes, "eval_seed": args.eval_seed}
+
+
+def final_evaluation(args, env, agent, action_path, time_obs: bool) -> dict:
+    """The trained policy (deterministic) on the evaluation episodes of --eval-seed; a KGRL run's
+    prior (a = 0) on the same episodes ("prior_eval"), and the paired gain of the policy over it."""
+    from vkgrl_newton.agents.evaluation import KMPPriorPolicy
+
+    seed_evaluation(env, args.eval_seed)
+    metrics = evaluate(env, AgentPolicy(agent, action_path, time_obs), args.eval_episodes,
+                       progress=not args.no_progress, desc="final evaluation")
+    metrics["eval_seed"] = args.eval_seed
+    if action_path is not None:
+        seed_evaluation(env, args.eval_seed)
+        prior = evaluate(env, KMPPriorPolicy(action_path), args.eval_episodes, progress=not args.no_progress,
+                         desc="the prior, same episodes")
+        metrics["prior_eval"] = {k: v for k, v in prior.items() if k != "per_episode"}
+        metrics["prior_eval"]["per_episode"] = [{k: e[k] for k in ("world_success", "world_contact_force")}
+                                           for e in prior["per_episode"]]
+        metrics["paired_gain"] = {
+            "success_rate": paired_gain(world_outcomes(metrics), world_outcomes(prior), seed=args.eval_seed),
+            "mean_contact_force": paired_gain(world_outcomes(metrics, "world_contact_force"),
+                                              world_outcomes(prior, "world_contact_force"), seed=args.eval_seed)}
+    return metrics
+
+
+def paired_line(metrics: dict) -> str:
+    """One line: the policy's success, its prior's on the same episodes, and the paired gain."""
+    g = metrics["paired_gain"]["success_rate"]
+    return (f"success {metrics['success_rate']:.3f}, the prior {metrics['prior_eval']['success_rate']:.3f} on the same "
+            f"{g['n_pairs']} episodes: " + format_gain("gain", g))
 
 
 def _rng_state(env) -> dict:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import re
 import os
 import sys
 import time
@@ -46,6 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
+from vkgrl_newton.signals import exit_code, stop_signals_as_interrupts  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, METHODS  # noqa: E402
 from vkgrl_newton.tasks import FAMILIES as ENVS  # noqa: E402
 from vkgrl_newton.tasks import TASKS as TASK_SPECS  # noqa: E402
@@ -63,13 +65,14 @@ GRIDS = {
     "quick": {"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [4, 6], "methods": ["sac", "kgrl"],
               "seeds": [0, 1, 2]},
 }
+FORBIDDEN_RUN_ARGS = ("--run-dir", "--task", "--env", "--action-dim", "--method", "--seed", "--resume")
 ALLOWED = {"tasks": TASKS, "envs": ENVS, "action_dims": ACTION_DIMS, "methods": METHODS}
 # ----------------------------------------------------------------------------- the grid
 def validate_grid(grid: dict) -> dict:
     """The grid with its axes checked; ValueError names a bad axis or value and the allowed ones."""
-    unknown = set(grid) - set(AXES)
+    unknown = set(grid) - set(AXES) - {"variants"}
     if unknown:
-        raise ValueError(f"grid: unknown axes {sorted(unknown)}; allowed: {list(AXES)}")
+        raise ValueError(f"grid: unknown axes {sorted(unknown)}; allowed: {list(AXES)} and 'variants'")
     out = {}
     for axis in AXES:
         values = grid.get(axis)
@@ -85,6 +88,19 @@ def validate_grid(grid: dict) -> dict:
         if len(set(values)) != len(values):
             raise ValueError(f"grid: axis {axis!r} repeats a value: {values!r}")
         out[axis] = list(values)
+    if "variants" in grid:  # {name: [run.py arguments]}: one more axis, of option sets
+        variants = grid["variants"]
+        if not isinstance(variants, dict) or not variants:
+            raise ValueError("grid: 'variants' must be a non-empty object {name: [run.py arguments]}")
+        for name, extra in variants.items():
+            if not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", name):
+                raise ValueError(f"grid: variant name {name!r}: 1-40 letters, digits, '_', '.', '-'")
+            if not isinstance(extra, list) or not all(isinstance(a, str) for a in extra):
+                raise ValueError(f"grid: variant {name!r}: a list of run.py arguments (strings), got {extra!r}")
+            bad = [a for a in extra if a.split("=")[0] in FORBIDDEN_RUN_ARGS + ("--label",)]
+            if bad:
+                raise ValueError(f"grid: variant {name!r} sets {bad[0]}, which the sweep sets per trial")
+        out["variants"] = {k: list(v) for k, v in variants.items()}
     return out
 
 
@@ -93,12 +109,19 @@ def configuration_name(task: str, env: str, action_dim: int, method: str) -> str
 
 
 def trials_of(grid: dict, out: Path) -> list[dict]:
-    """One dict per trial, in grid order (task, env, action dim, method, seed)."""
+    """One dict per trial, in grid order (task, env, action dim, method, seed, variant). A variant's
+    trials live in <configuration>+<variant>/ and run with `--label <variant>` and its arguments."""
     trials = []
-    for task, env, dim, method, seed in itertools.product(*(grid[a] for a in AXES)):
-        name = configuration_name(task, env, dim, method)
-        trials.append({"name": f"{name}/seed{seed}", "task": task, "env": env, "action_dim": dim,
-                       "method": method, "seed": seed, "run_dir": str(out / name / f"seed{seed}")})
+    variants = grid.get("variants") or {None: []}
+    for task, env, dim, method in itertools.product(*(grid[a] for a in AXES[:-1])):
+        for seed in grid["seeds"]:  # seeds outermost: a sweep stopped midway has as many seeds of each variant
+            for variant, extra in variants.items():
+                name = configuration_name(task, env, dim, method) + (f"+{variant}" if variant else "")
+                trial = {"name": f"{name}/seed{seed}", "task": task, "env": env, "action_dim": dim,
+                         "method": method, "seed": seed, "run_dir": str(out / name / f"seed{seed}")}
+                if variant:
+                    trial.update(variant=variant, extra_args=["--label", variant, *extra])
+                trials.append(trial)
     return trials
 
 
@@ -159,7 +182,6 @@ def split_argv(argv: list[str]) -> tuple[list[str], list[str]]:
     return argv, []
 
 
-FORBIDDEN_RUN_ARGS = ("--run-dir", "--task", "--env", "--action-dim", "--method", "--seed", "--resume")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -201,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"train/sweep.py: {len(trials)} trials in {args.out}, {len(trials) - len(todo)} done, {len(todo)} to run")
     if not todo:
         return print_status(trials)
-    return run_sweep(args, todo, trials, trial_args)
+    with stop_signals_as_interrupts():
+        return run_sweep(args, todo, trials, trial_args)
 
 
 def run_sweep(args, todo: list[dict], trials: list[dict], trial_args: list[str]) -> int:
@@ -235,14 +258,15 @@ def run_sweep(args, todo: list[dict], trials: list[dict], trial_args: list[str])
                 bar.update(1)
             done_tr = sum(trial_status(t)[1] for t in running.values())
             bar.set_postfix(running=len(running), failed=len(failed), transitions=done_tr, refresh=True)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:  # Ctrl-C, SIGTERM or SIGHUP (vkgrl_newton/signals.py)
         bar.close()
-        tqdm.write("interrupted: the running trials stop at their next step and keep their checkpoints; "
-                   "run the same command again to continue")
-        for ref in running:
-            ray.cancel(ref)
+        tqdm.write(f"{e or 'interrupted'}: the running trials checkpoint at their next step and stop; "
+                   "run the same command again to continue them")
+        for ref, trial in running.items():
+            write_trial_state(Path(trial["run_dir"]), state="interrupted")
+            ray.cancel(ref)  # the trial's task sends its run.py SIGINT and waits for it (vkgrl_newton/sweep.py)
         ray.shutdown()
-        return 130
+        return exit_code(e)
     bar.close()
     summary = sweep_summary(trials)
     atomic_write_text(args.out / "sweep_summary.json", json.dumps(summary, indent=2), overwrite=True)

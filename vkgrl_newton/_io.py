@@ -10,6 +10,8 @@ the new one, never a torn file.
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import pickle
 import tempfile
@@ -21,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["atomic_write", "atomic_savez", "atomic_write_text", "load_npz", "NPZ_READ_ERRORS",
+__all__ = ["atomic_write", "atomic_savez", "atomic_write_text", "strict_json", "load_npz", "NPZ_READ_ERRORS",
            "CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "check_meta"]
 
 CHECKPOINT_FORMAT = 1
@@ -42,6 +44,7 @@ def atomic_write(path, overwrite: bool, write, suffix: str = ".tmp") -> Path:
         raise FileExistsError(f"{path} exists and is not overwritten; choose another path")
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=suffix)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a written file follows the umask like any other
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
@@ -59,6 +62,19 @@ def atomic_write(path, overwrite: bool, write, suffix: str = ".tmp") -> Path:
     return path
 
 
+def _umask() -> int:
+    """The process's umask, read without changing it (Linux: /proc; elsewhere set and restored)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_savez(path, overwrite: bool, **arrays) -> Path:
     """An npz file written with `atomic_write` (same overwrite rule)."""
     return atomic_write(path, overwrite, lambda f: np.savez(f, **arrays), suffix=".tmp.npz")
@@ -67,6 +83,23 @@ def atomic_savez(path, overwrite: bool, **arrays) -> Path:
 def atomic_write_text(path, text: str, overwrite: bool = False) -> Path:
     """A UTF-8 text file written with `atomic_write` (never overwrites by default)."""
     return atomic_write(path, overwrite, lambda f: f.write(text.encode("utf-8")))
+
+
+def strict_json(obj, **kw) -> str:
+    """json.dumps with NaN and +-inf written as null (bare NaN is not JSON: jq and JavaScript reject it)."""
+    return json.dumps(_finite(obj), allow_nan=False, **kw)
+
+
+def _finite(obj):
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return _finite(obj.item())
+    return obj
 
 
 def load_npz(path, what: str, required: tuple[str, ...]) -> dict:

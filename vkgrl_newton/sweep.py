@@ -18,6 +18,7 @@ from pathlib import Path
 
 from vkgrl_newton._io import atomic_write_text
 from vkgrl_newton.results.curves import read_curves
+from vkgrl_newton.signals import STOP_EXIT_CODES
 
 LOG_TAIL_LINES = 30
 
@@ -33,7 +34,7 @@ class TrialFailed(RuntimeError):
 def trial_command(trial: dict, run_py: str, run_args: list[str], resume: bool) -> list[str]:
     cmd = [sys.executable, run_py, "--run-dir", trial["run_dir"], "--task", trial["task"],
            "--env", trial["env"], "--action-dim", str(trial["action_dim"]), "--method", trial["method"],
-           "--seed", str(trial["seed"]), "--no-progress", *run_args]
+           "--seed", str(trial["seed"]), "--no-progress", *run_args, *trial.get("extra_args", [])]
     return cmd + ["--resume"] if resume else cmd
 
 
@@ -63,7 +64,7 @@ def log_tail(run_dir: Path, lines: int = LOG_TAIL_LINES) -> str:
 
 
 def trial_status(trial: dict, stale_s: float = 300.0) -> tuple[str, int]:
-    """(done | running | failed | pending, transitions so far) from the trial's files.
+    """(done | running | failed | interrupted | pending, transitions so far) from the trial's files.
 
     Running: its run.py process is alive (on this host), or, for a trial on another node, one of
     its files changed within stale_s."""
@@ -76,7 +77,7 @@ def trial_status(trial: dict, stale_s: float = 300.0) -> tuple[str, int]:
     state = read_trial_state(run_dir)
     if state.get("state") == "failed":
         return "failed", transitions
-    if state.get("state") == "running":
+    if state.get("state") in ("running", "interrupted"):
         if state.get("host") == socket.gethostname() and state.get("pid"):
             alive = _alive(int(state["pid"]))
         else:
@@ -84,6 +85,8 @@ def trial_status(trial: dict, stale_s: float = 300.0) -> tuple[str, int]:
             alive = any(f.exists() and time.time() - f.stat().st_mtime < stale_s for f in files)
         if alive:
             return "running", transitions
+        if state.get("state") == "interrupted":  # the sweep was stopped; running it again continues it
+            return "interrupted", transitions
     return "pending", transitions
 
 
@@ -131,7 +134,7 @@ def run_trial(trial: dict, run_py: str, run_args: list[str], submitted_unix: flo
     if code == 0 and (run_dir / "metrics.json").exists():
         write_trial_state(run_dir, state="done")
         return {"name": trial["name"], "skipped": False, "attempts": attempts}
-    if code < 0 or code == 130:  # killed by a signal, or interrupted: resumable from its checkpoint
+    if code < 0 or code in STOP_EXIT_CODES:  # killed or stopped by a signal: resumable from its checkpoint
         raise TrialProcessDied(f"{trial['name']}: run.py died (exit {code}); log tail:\n{log_tail(run_dir)}")
     write_trial_state(run_dir, state="failed", log_tail=log_tail(run_dir))
     raise TrialFailed(f"{trial['name']}: run.py exited {code}; log tail:\n{log_tail(run_dir)}")

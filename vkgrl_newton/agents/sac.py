@@ -27,6 +27,7 @@ from vkgrl_newton.agents.dense import (MATMUL_BACKENDS, ensemble_linear, ensembl
 Tensor = torch.Tensor
 ACTIVATIONS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh}
 WARMUPS = ("uniform", "policy")
+LOG_STD_BOUNDS = ("clamp", "tanh")
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,29 @@ class SACConfig:
     # std (pre-tanh) whatever the observation, as RSL-RL-SAC's small-sigma init: for KGRL a = 0 is
     # the prior, and std ~1 explores ~7 mm around it against a 0.06 mm clearance (docs/benchmarks.md)
     actor_init_std: float | None = None
+    # How log_std is kept in [log_std_min, log_std_max]: "clamp" (SB3/SBX, the thesis's code: no
+    # gradient beyond the bounds, so a std pushed to the bound stays there) or "tanh" (CleanRL,
+    # SpinningUp: log_std_min + (max - min) (tanh(x) + 1) / 2, a gradient everywhere; with a tight
+    # bound the std can shrink again once the entropy target asks for it).
+    log_std_bound: str = "clamp"
+    # IBRL (Hu et al. 2024) with the prior as the reference policy, for KGRL where a = 0 is the KMP
+    # prior: when acting and in the critic's target, take a = 0 instead of the actor's action
+    # where the critics (min over the ensemble) value a = 0 more. Off in the thesis.
+    prior_anchor: bool = False
+    # Actor and temperature updates wait until the buffer holds a rewarded transition (the critic
+    # trains from learning_starts on): before that the critic's action gradient has no signal and
+    # only moves the policy away from where it started (a = 0, the prior, for KGRL). Off in the thesis.
+    actor_after_reward: bool = False
+    # LayerNorm after every hidden layer of the critics (RLPD, SERL): bounds Q's extrapolation to
+    # actions the data does not cover. Off in the thesis.
+    critic_layer_norm: bool = False
+    # RLPD's symmetric sampling: this fraction of every minibatch comes from the prior buffer (the
+    # prior's own rollouts, prior_rollouts below), the rest from the online buffer; 0: one buffer (thesis).
+    prior_ratio: float = 0.0
+    # The first prior_rollouts transitions act a = 0 exactly (for KGRL: the prior's own rollouts,
+    # counted in the run's transitions like any other) and, with prior_ratio > 0, are kept in the
+    # prior buffer for good: a critic that always sees the prior's actions knows their value.
+    prior_rollouts: int = 0
     # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel) or
     # "torch" (MKL; its AVX2 path on AMD). Not a hyperparameter: float32 last bits differ.
     cpu_matmul: str = "onednn"
@@ -79,6 +103,10 @@ class SACConfig:
             raise ValueError(f"SACConfig.cpu_matmul={self.cpu_matmul!r}; allowed: {list(MATMUL_BACKENDS)}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"SACConfig.activation={self.activation!r}; allowed: {sorted(ACTIVATIONS)}")
+        if self.prior_rollouts < 0:
+            raise ValueError(f"SACConfig.prior_rollouts={self.prior_rollouts!r} must be >= 0")
+        if self.prior_ratio > 0 and self.prior_rollouts == 0:
+            raise ValueError("SACConfig.prior_ratio > 0 samples the prior buffer: give prior_rollouts > 0 to fill it")
         for name in ("buffer_size", "batch_size", "train_every", "gradient_steps", "n_critics", "policy_delay"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be >= 1")
@@ -95,6 +123,17 @@ class SACConfig:
                 raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be in ({lo}, {hi}]")
         if not self.init_alpha > 0 or not self.lr > 0:
             raise ValueError("SACConfig.init_alpha and SACConfig.lr must be > 0")
+        if self.log_std_bound not in LOG_STD_BOUNDS:
+            raise ValueError(f"SACConfig.log_std_bound={self.log_std_bound!r}; allowed: {list(LOG_STD_BOUNDS)}")
+        if not 0.0 <= self.prior_ratio < 1.0:
+            raise ValueError(f"SACConfig.prior_ratio={self.prior_ratio!r} must be in [0, 1)")
+        for name in ("lr", "init_alpha", "obs_norm_eps", "weight_decay", "log_std_min", "log_std_max", "gamma", "tau"):
+            if not math.isfinite(float(getattr(self, name))):
+                raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be finite")
+        if self.weight_decay < 0:
+            raise ValueError(f"SACConfig.weight_decay={self.weight_decay!r} must be >= 0")
+        if self.buffer_size < self.batch_size:
+            raise ValueError(f"SACConfig.buffer_size={self.buffer_size} must be >= batch_size={self.batch_size}")
         if not self.obs_norm_eps > 0:
             raise ValueError(f"SACConfig.obs_norm_eps={self.obs_norm_eps!r} must be > 0")
 
@@ -212,6 +251,7 @@ class Actor(nn.Module):
         self.activation = ACTIVATIONS[cfg.activation]()
         self.matmul = "torch"  # agents/dense.py backend; SAC sets it for its device
         self.log_std_bounds = (cfg.log_std_min, cfg.log_std_max)
+        self.soft_bound = cfg.log_std_bound == "tanh"
         for m in self.modules():
             if isinstance(m, nn.Linear):
                 _init_linear_(m.weight, m.bias, m.in_features, generator)
@@ -219,7 +259,15 @@ class Actor(nn.Module):
             with torch.no_grad():
                 self.head.weight.mul_(1e-3)
                 self.head.bias[:action_dim] = 0.0
-                self.head.bias[action_dim:] = math.log(cfg.actor_init_std)
+                self.head.bias[action_dim:] = self.raw_log_std(math.log(cfg.actor_init_std))
+
+    def raw_log_std(self, log_std: float) -> float:
+        """The head's output that gives this log_std (the inverse of the bound; inside it, strictly)."""
+        if not self.soft_bound:
+            return log_std
+        lo, hi = self.log_std_bounds
+        y = min(max(2.0 * (log_std - lo) / (hi - lo) - 1.0, -1.0 + 1e-6), 1.0 - 1e-6)
+        return math.atanh(y)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x, last = obs, len(self.linears) - 1
@@ -227,7 +275,10 @@ class Actor(nn.Module):
             x = linear(x, m.weight, m.bias, self.matmul)
             x = self.activation(x) if i < last else x
         mean, log_std = x.chunk(2, dim=-1)
-        return mean, log_std.clamp(*self.log_std_bounds)
+        lo, hi = self.log_std_bounds
+        if self.soft_bound:
+            return mean, lo + 0.5 * (hi - lo) * (torch.tanh(log_std) + 1.0)
+        return mean, log_std.clamp(lo, hi)
 
     def sample(self, obs: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """Reparameterized action in [-1, 1] and its log-probability."""
@@ -251,6 +302,13 @@ class CriticEnsemble(nn.Module):
         self.matmul = "torch"  # agents/dense.py backend; SAC sets it for its device
         for w, b in zip(self.weights, self.biases):
             _init_linear_(w, b, w.shape[1], generator)
+        # LayerNorm of every hidden layer (before its activation), a scale and shift per critic
+        # (created only when asked, so that older checkpoints keep their keys)
+        if cfg.critic_layer_norm:
+            self.ln_scales = nn.ParameterList([nn.Parameter(torch.ones(n, 1, o)) for o in dims[1:-1]])
+            self.ln_shifts = nn.ParameterList([nn.Parameter(torch.zeros(n, 1, o)) for o in dims[1:-1]])
+        else:
+            self.ln_scales = self.ln_shifts = None
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor, frozen: bool = False) -> torch.Tensor:
         """(B, obs_dim), (B, action_dim) -> Q values (n_critics, B).
@@ -258,14 +316,28 @@ class CriticEnsemble(nn.Module):
         frozen: the weights as constants (the actor's loss), so a backward pass computes the
         gradient w.r.t. the action only, never the critics' weight gradients it would discard."""
         weights, biases = self.weights, self.biases
+        scales, shifts = self.ln_scales, self.ln_shifts
         if frozen:
             weights, biases = [w.detach() for w in weights], [b.detach() for b in biases]
+            if scales is not None:
+                scales, shifts = [g.detach() for g in scales], [h.detach() for h in shifts]
         x = torch.cat([obs, action], dim=-1)  # (B, in): shared by the critics, never copied per critic
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(weights, biases)):
             x = ensemble_linear(x, w, b, self.matmul)
-            x = ensemble_map(self.activation, x) if i < last else x
+            if i < last:
+                if scales is not None:
+                    x = ensemble_layer_norm(x, scales[i], shifts[i])
+                x = ensemble_map(self.activation, x)
         return ensemble_stack(x)
+
+
+def ensemble_layer_norm(h, scale: torch.Tensor, shift: torch.Tensor):
+    """LayerNorm over the features of each member's activations; scale, shift (n, 1, d) per member."""
+    d = scale.shape[-1]
+    if isinstance(h, torch.Tensor):  # (n, B, d)
+        return F.layer_norm(h, (d,)) * scale + shift
+    return tuple(F.layer_norm(x, (d,)) * g[0] + c[0] for x, g, c in zip(h, scale, shift))
 
 
 @torch.no_grad()
@@ -301,6 +373,11 @@ class SAC:
         self.normalizer = (EmpiricalNormalization(obs_dim, eps=config.obs_norm_eps).to(self.device)
                            if config.obs_normalization else None)
         self.buffer = ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device)
+        # the prior's own rollouts (RLPD's second buffer: the first cfg.prior_rollouts transitions),
+        # sampled at cfg.prior_ratio
+        self.prior_buffer = (ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device)
+                             if config.prior_ratio > 0 else None)
+        self.rewarded = False  # a transition with reward > 0 has been added (cfg.actor_after_reward)
         self.num_transitions = 0  # env transitions added, summed over worlds
         self.num_env_steps = 0  # batched `add` calls
         self.num_updates = 0  # critic gradient steps
@@ -313,7 +390,15 @@ class SAC:
     def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
         """Actions in [-1, 1] for a batch of raw observations (N, obs_dim)."""
         obs = self.normalize(torch.as_tensor(obs, dtype=torch.float32, device=self.device))
-        return self.actor.deterministic(obs) if deterministic else self.actor.sample(obs, self.generator)[0]
+        a = self.actor.deterministic(obs) if deterministic else self.actor.sample(obs, self.generator)[0]
+        return self.anchored(self.critic, obs, a) if self.cfg.prior_anchor else a
+
+    def anchored(self, critic: "CriticEnsemble", obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """IBRL's choice (cfg.prior_anchor): a = 0 (the prior) where min_i Q_i(s, 0) > min_i Q_i(s, a)."""
+        zero = torch.zeros_like(action)
+        q = critic(torch.cat([obs, obs]), torch.cat([action, zero])).min(dim=0).values
+        q_pi, q_0 = q.chunk(2)
+        return torch.where((q_0 > q_pi).unsqueeze(-1), zero, action)
 
     def random_actions(self, num_envs: int) -> torch.Tensor:
         """Uniform actions in [-1, 1] (SB3/SBX warm-up)."""
@@ -322,6 +407,8 @@ class SAC:
 
     def explore(self, obs: torch.Tensor) -> torch.Tensor:
         """The training loop's action: the stochastic actor once ready(), before that cfg.warmup's."""
+        if self.num_transitions < self.cfg.prior_rollouts:
+            return torch.zeros((obs.shape[0], self.action_dim), device=self.device)
         if self.ready() or self.cfg.warmup == "policy":
             return self.act(obs)
         return self.random_actions(obs.shape[0])
@@ -333,8 +420,12 @@ class SAC:
         if self.normalizer is not None:
             self.normalizer.update(obs)
         self.buffer.add(obs, action, reward, next_obs, terminated)
+        if self.prior_buffer is not None and self.num_transitions < self.cfg.prior_rollouts:
+            self.prior_buffer.add(obs, action, reward, next_obs, terminated)
         self.num_transitions += obs.shape[0]
         self.num_env_steps += 1
+        if self.cfg.actor_after_reward and not self.rewarded:  # one host read per step until the first reward
+            self.rewarded = bool((torch.as_tensor(reward) > 0).any())
 
     def ready(self) -> bool:
         """Enough samples to train: learning_starts transitions and at least one batch."""
@@ -349,8 +440,19 @@ class SAC:
                     alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Soft Bellman residual on normalized obs; returns (loss, Q (n, B), target (B,))."""
         with torch.no_grad():
-            next_action, next_log_pi = self.actor.sample(next_obs, self.generator)
-            next_q = self.critic_target(next_obs, next_action).min(dim=0).values
+            if self.cfg.prior_anchor:  # IBRL: bootstrap from the better of pi's sample and a = 0
+                mean, log_std = self.actor(next_obs)
+                u = mean + log_std.exp() * torch.randn(mean.shape, generator=self.generator, device=mean.device)
+                zero = torch.zeros_like(u)
+                q = self.critic_target(torch.cat([next_obs, next_obs]), torch.cat([torch.tanh(u), zero]))
+                q_pi, q_0 = q.min(dim=0).values.chunk(2)
+                take_0 = q_0 > q_pi
+                next_q = torch.where(take_0, q_0, q_pi)
+                # log pi of the action taken: a = 0 is u = 0 under the same squashed Gaussian
+                next_log_pi = squashed_log_prob(torch.where(take_0.unsqueeze(-1), zero, u), mean, log_std)
+            else:
+                next_action, next_log_pi = self.actor.sample(next_obs, self.generator)
+                next_q = self.critic_target(next_obs, next_action).min(dim=0).values
             target = reward + self.cfg.gamma * (1.0 - terminated) * (next_q - alpha * next_log_pi)
         q = self.critic(obs, action)
         loss = 0.5 * (q - target).square().mean(dim=1).sum()  # SB3/SBX: 0.5 sum_i MSE_i
@@ -372,7 +474,7 @@ class SAC:
         if steps < 1:
             raise ValueError(f"num_gradient_steps={steps} must be >= 1")
         # All minibatches in one draw and one normalization (stats change only in `add`).
-        b = self.buffer.sample(steps * bs, self.generator)
+        b = self.sample(steps, bs)
         obs = self.normalize(b.obs).view(steps, bs, -1)
         next_obs = self.normalize(b.next_obs).view(steps, bs, -1)
         action, reward, term = b.action.view(steps, bs, -1), b.reward.view(steps, bs), b.terminated.view(steps, bs)
@@ -385,7 +487,7 @@ class SAC:
             self.critic_optim.step()
             soft_update_(self._target_params, self._online_params, cfg.tau)
             critic_stats.append(torch.stack([loss_q.detach(), q.detach().mean()]))
-            if self.num_updates % cfg.policy_delay == 0:
+            if self.num_updates % cfg.policy_delay == 0 and (self.rewarded or not cfg.actor_after_reward):
                 loss_pi, log_pi = self.actor_loss(obs[k], alpha)
                 self.actor_optim.zero_grad(set_to_none=True)
                 loss_pi.backward()  # actor weights only: the critic is frozen in actor_loss
@@ -404,6 +506,19 @@ class SAC:
         cl, qm, al, tl, ent, alpha = stats.tolist()
         return {"critic_loss": cl, "actor_loss": al, "alpha_loss": tl, "alpha": alpha, "q_mean": qm, "entropy": ent}
 
+    def sample(self, steps: int, batch_size: int) -> Batch:
+        """steps x batch_size rows; with a filled prior buffer, round(prior_ratio * batch_size) of
+        each minibatch come from it (RLPD's symmetric sampling at 0.5), the rest online."""
+        n_prior = int(round(self.cfg.prior_ratio * batch_size)) if self.prior_buffer is not None else 0
+        if n_prior == 0 or len(self.prior_buffer) == 0:
+            return self.buffer.sample(steps * batch_size, self.generator)
+        online = self.buffer.sample(steps * (batch_size - n_prior), self.generator)
+        prior = self.prior_buffer.sample(steps * n_prior, self.generator)
+        return Batch(*(torch.cat([o.view(steps, batch_size - n_prior, *o.shape[1:]),
+                                  p.view(steps, n_prior, *p.shape[1:])], dim=1).reshape(steps * batch_size,
+                                                                                         *o.shape[1:])
+                       for o, p in zip(online, prior)))
+
     # --- checkpoints -----------------------------------------------------------------------------
     def state_dict(self, include_buffer: bool = True) -> dict:
         """Everything a bit-identical resume needs (the buffer can be left out to save space)."""
@@ -418,6 +533,10 @@ class SAC:
         }
         if include_buffer:
             state["buffer"] = self.buffer.state_dict()
+            if self.prior_buffer is not None:
+                state["prior_buffer"] = self.prior_buffer.state_dict()
+        if self.cfg.actor_after_reward:
+            state["rewarded"] = self.rewarded
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -435,4 +554,7 @@ class SAC:
         self.generator.set_state(state["generator"])
         if "buffer" in state:
             self.buffer.load_state_dict(state["buffer"])
+        if "prior_buffer" in state and self.prior_buffer is not None:
+            self.prior_buffer.load_state_dict(state["prior_buffer"])
+        self.rewarded = bool(state.get("rewarded", False))
 

@@ -831,8 +831,13 @@ class AssemblyEnv(VecEnv):
             nan = float("nan")
             return {"success_rate": nan, "success_rate_any": nan, "mean_contact_force": nan, "peak_contact_force": nan,
                     "mean_peak_contact_force": nan, "time_to_first_success_s": nan, "episode_reward": nan,
-                    "num_episodes": 0}
+                    "num_episodes": 0, "world_success": [nan] * self.num_envs,
+                    "world_contact_force": [nan] * self.num_envs}
         count = self.force_count[mask].clamp_min(1).float()
+        nan_e = torch.full((self.num_envs,), float("nan"), device=self.tdev)
+        # per world, NaN where the world's episode does not count: paired comparisons (two policies
+        # on the same evaluation episodes, results/paired.py) match episodes world by world
+        world_force = self.force_norm_sum / self.force_count.clamp_min(1).float()
         fs = self.first_success_step[mask]
         reached = fs >= 0
         ttfs = (fs[reached].float() * self.task.episode_length_s / self.max_episode_length)
@@ -845,6 +850,8 @@ class AssemblyEnv(VecEnv):
             "time_to_first_success_s": float(ttfs.mean()) if reached.any() else float("nan"),
             "episode_reward": float(self.episode_reward[mask].mean()),
             "num_episodes": int(mask.sum()),
+            "world_success": torch.where(mask, self.success.float(), nan_e).tolist(),
+            "world_contact_force": torch.where(mask, world_force, nan_e).tolist(),
         }
 
     def _blown_up(self, held_p: torch.Tensor, tcp_p: torch.Tensor) -> torch.Tensor:

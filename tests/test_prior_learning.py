@@ -1,0 +1,226 @@
+"""Learning beyond the KMP prior (issue 28): the paired evaluation and the SAC options that keep the
+prior (a = 0 for KGRL), each against an independent reference: exact enumeration of the bootstrap,
+brute-force choices, a float64 LayerNorm critic, counted sampling."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from vkgrl_newton.agents.sac import SAC, make_sac_config
+from vkgrl_newton.results.paired import paired_gain, seed_evaluation, world_outcomes
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+SMALL = dict(hidden_dims=(16, 16), batch_size=16, learning_starts=16, buffer_size=512, gradient_steps=4)
+
+
+def agent(obs_dim=3, action_dim=2, seed=0, **overrides) -> SAC:
+    return SAC(obs_dim, action_dim, make_sac_config("quick", **{**SMALL, **overrides}), "cpu", seed)
+
+
+# ------------------------------------------------------------------------------ paired evaluation
+def test_paired_gain_against_the_exact_bootstrap_distribution():
+    a, b = np.array([1.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0])
+    d = a - b  # 1, 0, 0
+    exact = np.sort([np.mean(d[list(i)]) for i in itertools.product(range(3), repeat=3)])  # 27 resamples
+    g = paired_gain(a, b, reps=200_000, seed=3)
+    assert g["mean"] == pytest.approx(1 / 3) and g["n_pairs"] == 3
+    assert (g["a_mean"], g["b_mean"]) == (pytest.approx(2 / 3), pytest.approx(1 / 3))
+    # the exact distribution's 2.5 / 97.5 % quantiles (its inverse CDF over the 27 equally likely
+    # resamples): P(mean = 0) = 8/27, P(mean = 1) = 1/27 > 2.5 %, so the interval is [0, 1]; the
+    # Monte Carlo percentile lands on the same atoms
+    assert g["ci_low"] == pytest.approx(np.percentile(exact, 2.5, method="inverted_cdf"), abs=1e-9) == 0.0
+    assert g["ci_high"] == pytest.approx(np.percentile(exact, 97.5, method="inverted_cdf"), abs=1e-9) == 1.0
+    # NaN marks an episode that did not count: dropped pairwise; identical outcomes: a zero interval
+    g = paired_gain([1, np.nan, 0, 1], [1, 1, np.nan, 1])
+    assert g["n_pairs"] == 2 and g["mean"] == g["ci_low"] == g["ci_high"] == 0.0
+    empty = paired_gain([np.nan], [1.0])
+    assert empty["mean"] is None and json.loads(json.dumps(empty))["n_pairs"] == 0
+    with pytest.raises(ValueError, match="same episodes"):
+        paired_gain([1, 0], [1, 0, 1])
+
+
+def test_world_outcomes_flatten_rounds_then_worlds():
+    result = {"per_episode": [{"world_success": [1.0, 0.0]}, {"world_success": [float("nan"), 1.0]}]}
+    np.testing.assert_array_equal(world_outcomes(result), [1.0, 0.0, np.nan, 1.0])
+
+
+def test_an_evaluation_seed_gives_bitwise_the_same_initial_states(peg_env):
+    """What two policies see after seed_evaluation with one seed, whatever ran before: identical
+    initial states and target-frame noise; another seed, other ones."""
+    env = peg_env
+
+    def snapshot():
+        obs = env.get_observations()["policy"].clone()
+        return obs, env.target_frame_pos_w.clone(), env.fixed_pos_w.clone(), env.fixed_yaw.clone()
+
+    g = torch.Generator().manual_seed(0)
+    for _ in range(3):  # one "policy" moves the arm around
+        env.step(torch.rand(env.num_envs, env.num_actions, generator=g) * 2 - 1)
+    seed_evaluation(env, 123)
+    first = snapshot()
+    for _ in range(5):  # another policy, another history
+        env.step(-torch.rand(env.num_envs, env.num_actions, generator=g))
+    seed_evaluation(env, 123)
+    again = snapshot()
+    for x, y in zip(first, again):
+        assert torch.equal(x, y)
+    seed_evaluation(env, 124)
+    assert not torch.equal(snapshot()[1], first[1])
+
+
+# ------------------------------------------------------------------------------ exploration options
+def test_tanh_log_std_bound_has_a_gradient_at_and_beyond_its_limits():
+    soft = agent(log_std_bound="tanh", log_std_max=-1.2, actor_init_std=0.1)
+    hard = agent(log_std_max=-1.2, actor_init_std=0.1)
+    obs = torch.randn(64, 3, generator=torch.Generator().manual_seed(0))
+    for a, bounded in ((soft, True), (hard, False)):
+        with torch.no_grad():
+            a.actor.head.bias[2:] = 5.0  # raw log_std far above the upper bound
+        _, log_std = a.actor(obs)
+        assert log_std.max() <= -1.2 + 1e-6
+        log_std.sum().backward()
+        grad = a.actor.head.bias.grad[2:]
+        assert (grad.abs() > 0).all() if bounded else (grad == 0).all()
+    # the soft bound starts at the asked std like the clamp does
+    fresh = agent(log_std_bound="tanh", log_std_max=-1.2, actor_init_std=0.1)
+    _, log_std = fresh.actor(obs)
+    np.testing.assert_allclose(log_std.exp().detach().numpy(), 0.1, rtol=0.02)
+    lo, hi = -20.0, -1.2  # the map itself: lo + (hi - lo) (tanh(x) + 1) / 2
+    x = torch.tensor([-3.0, 0.0, 3.0], dtype=torch.float64)
+    want = lo + (hi - lo) * (np.tanh(x.numpy()) + 1) / 2
+    fresh.actor.soft_bound = True
+    assert fresh.actor.raw_log_std(float(want[1])) == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError, match="log_std_bound='soft'.*clamp.*tanh"):
+        make_sac_config("quick", log_std_bound="soft")
+
+
+class QuadraticCritic(torch.nn.Module):
+    """Q_i(s, a) = -|a - c_i(s)|^2 + i: a known best action per state; min over i is critic 0's."""
+
+    def __init__(self, centre):
+        super().__init__()
+        self.centre = centre
+
+    def forward(self, obs, action, frozen=False):
+        q = -(action - self.centre(obs)).square().sum(-1)
+        return torch.stack([q, q + 1.0])
+
+
+def test_prior_anchor_takes_a_zero_where_the_critics_value_it_more():
+    a = agent(prior_anchor=True)
+    obs = torch.randn(256, 3, generator=torch.Generator().manual_seed(1))
+    centre = lambda o: 0.5 * torch.tanh(o[:, :2])  # noqa: E731
+    critic = QuadraticCritic(centre)
+    action = torch.rand(256, 2, generator=torch.Generator().manual_seed(2)) * 2 - 1
+    chosen = a.anchored(critic, obs, action)
+    c = centre(obs).double()
+    zero_better = (c.square().sum(-1) < (action.double() - c).square().sum(-1))  # brute force, float64
+    assert 0 < int(zero_better.sum()) < 256
+    assert torch.equal(chosen[zero_better], torch.zeros_like(chosen[zero_better]))
+    assert torch.equal(chosen[~zero_better], action[~zero_better])
+    # act() (exploring and deterministic) goes through the same choice with the agent's own critics
+    a.critic = critic
+    det = a.act(obs, deterministic=True)
+    assert torch.equal(det, a.anchored(critic, a.normalize(obs), torch.tanh(a.actor(a.normalize(obs))[0])))
+
+
+def test_prior_anchor_target_bootstraps_from_the_better_action():
+    """The critic's target with the anchor: r + gamma (max(Q'(s', a_pi), Q'(s', 0)) - alpha log pi(chosen))."""
+    a = agent(prior_anchor=True, gamma=0.9)
+    centre = lambda o: torch.where(o[:, :1] > 0, 0.0, 0.9) * torch.ones(o.shape[0], 2)  # noqa: E731
+    a.critic_target = QuadraticCritic(centre)
+    g = torch.Generator().manual_seed(5)
+    obs, next_obs = torch.randn(512, 3, generator=g), torch.randn(512, 3, generator=g)
+    reward, term = torch.rand(512, generator=g), torch.zeros(512)
+    state = a.generator.get_state()
+    _, _, target = a.critic_loss(obs, torch.zeros(512, 2), reward, next_obs, term, torch.tensor(0.0))
+    a.generator.set_state(state)  # replay the draw the target made
+    mean, log_std = a.actor(next_obs)
+    u = mean + log_std.exp() * torch.randn(mean.shape, generator=a.generator)
+    c = centre(next_obs).double()
+    q_pi = -(torch.tanh(u).double() - c).square().sum(-1)
+    q_0 = -c.square().sum(-1)
+    want = (reward.double() + 0.9 * torch.maximum(q_pi, q_0)).detach()  # alpha = 0
+    np.testing.assert_allclose(target.double().numpy(), want.numpy(), rtol=1e-5, atol=1e-5)
+    # states whose critic centre is at 0 take a = 0; those centred at 0.9 mostly the policy's sample
+    assert (q_0 > q_pi)[next_obs[:, 0] > 0].all() and (q_0 < q_pi)[next_obs[:, 0] <= 0].any()
+
+
+def test_actor_waits_for_the_first_reward():
+    a = agent(actor_after_reward=True, policy_delay=1)
+    g = torch.Generator().manual_seed(0)
+
+    def add(r):
+        a.add(torch.randn(16, 3, generator=g), torch.rand(16, 2, generator=g) * 2 - 1, torch.full((16,), r),
+              torch.randn(16, 3, generator=g), torch.zeros(16))
+
+    add(0.0)
+    before = [p.detach().clone() for p in a.actor.parameters()]
+    critic_before = [p.detach().clone() for p in a.critic.parameters()]
+    stats = a.update()
+    assert all(torch.equal(x, y) for x, y in zip(before, a.actor.parameters()))  # no actor step
+    assert any(not torch.equal(x, y) for x, y in zip(critic_before, a.critic.parameters()))  # the critic learns
+    assert math.isnan(stats["actor_loss"]) and stats["alpha"] == 1.0
+    add(1.0)
+    a.update()
+    assert any(not torch.equal(x, y) for x, y in zip(before, a.actor.parameters()))
+    restored = agent(actor_after_reward=True, policy_delay=1)
+    restored.load_state_dict(a.state_dict())
+    assert restored.rewarded
+
+
+def test_prior_rollouts_fill_their_buffer_and_batches_take_the_ratio():
+    a = agent(prior_rollouts=32, prior_ratio=0.25, batch_size=16)
+    obs = torch.randn(16, 3)
+    assert torch.equal(a.explore(obs), torch.zeros(16, 2))  # the prior's own actions: a = 0 exactly
+    for tag in (1.0, 1.0, 0.0, 0.0, 0.0):  # 32 prior transitions (tag 1), then 48 online (tag 0)
+        act = a.explore(obs)
+        a.add(torch.full((16, 3), tag), act, torch.zeros(16), torch.zeros(16, 3), torch.zeros(16))
+    assert len(a.prior_buffer) == 32 and len(a.buffer) == 80
+    assert a.explore(obs).abs().sum() > 0  # after the rollouts, the actor's samples
+    b = a.sample(steps=50, batch_size=16)
+    tags = b.obs[:, 0].view(50, 16)
+    # each minibatch: the last round(0.25 * 16) = 4 rows from the prior buffer (all tag 1); the
+    # online rows come from all 80 (32 tag 1, 48 tag 0): about 40 % ones among them
+    assert (tags[:, 12:] == 1.0).all()
+    online_ones = float(tags[:, :12].mean())
+    assert 0.3 < online_ones < 0.5
+    with pytest.raises(ValueError, match="prior_rollouts > 0"):
+        make_sac_config("quick", prior_ratio=0.5)
+    with pytest.raises(ValueError, match="prior_ratio=1.0"):
+        make_sac_config("quick", prior_ratio=1.0, prior_rollouts=8)
+
+
+def test_layer_norm_critic_against_a_float64_reference():
+    a = agent(obs_dim=3, action_dim=2, critic_layer_norm=True, cpu_matmul="torch")
+    with torch.no_grad():  # non-trivial per-critic scales and shifts
+        for g_, h_ in zip(a.critic.ln_scales, a.critic.ln_shifts):
+            g_.uniform_(0.5, 1.5, generator=torch.Generator().manual_seed(1))
+            h_.uniform_(-0.2, 0.2, generator=torch.Generator().manual_seed(2))
+    obs, act = torch.randn(32, 3), torch.rand(32, 2) * 2 - 1
+    q = a.critic(obs, act).double().detach().numpy()
+    x0 = torch.cat([obs, act], -1).double().numpy()
+    ws = [w.detach().double().numpy() for w in a.critic.weights]
+    bs = [b.detach().double().numpy() for b in a.critic.biases]
+    gs = [g_.detach().double().numpy() for g_ in a.critic.ln_scales]
+    hs = [h_.detach().double().numpy() for h_ in a.critic.ln_shifts]
+    for i in range(2):
+        x = x0
+        for k in range(len(ws)):
+            x = x @ ws[k][i] + bs[k][i]
+            if k < len(ws) - 1:
+                mu, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
+                x = (x - mu) / np.sqrt(var + 1e-5) * gs[k][i] + hs[k][i]
+                x = np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
+        np.testing.assert_allclose(q[i], x[:, 0], rtol=1e-4, atol=1e-5)
+    # the oneDNN path computes the same network
+    b = agent(obs_dim=3, action_dim=2, critic_layer_norm=True)
+    b.critic.load_state_dict(a.critic.state_dict())
+    np.testing.assert_allclose(b.critic(obs, act).detach().numpy(), q, rtol=1e-4, atol=1e-5)

@@ -1,0 +1,52 @@
+"""Stop signals as interrupts: SIGTERM (kill, a scheduler's pre-emption, `docker stop`, Ray
+stopping a sweep's trial) and SIGHUP (a closed terminal) end a command the way Ctrl-C does, through
+its KeyboardInterrupt path (checkpoint, clean exit), instead of killing it mid-write.
+
+    with stop_signals_as_interrupts():  # the previous handlers come back after the block
+        try: ...
+        except KeyboardInterrupt as e:  # Ctrl-C, SIGTERM or SIGHUP
+            return exit_code(e)         # 130, 143 or 129 (128 + the signal's number, as a shell reports it)
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from contextlib import contextmanager
+
+__all__ = ["StopSignal", "stop_signals_as_interrupts", "exit_code", "STOP_EXIT_CODES"]
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+STOP_EXIT_CODES = (130, 128 + signal.SIGTERM, 128 + signal.SIGHUP)  # what a stopped command exits with
+
+
+class StopSignal(KeyboardInterrupt):
+    """A stop signal received; `signum` says which."""
+
+    def __init__(self, signum: int):
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+        self.signum = signum
+
+
+def _raise(signum, frame):
+    raise StopSignal(signum)
+
+
+@contextmanager
+def stop_signals_as_interrupts():
+    """Inside the block SIGTERM and SIGHUP raise StopSignal (a KeyboardInterrupt) in the main
+    thread; outside a main thread (where Python cannot set handlers) nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, _raise) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def exit_code(exc: BaseException) -> int:
+    """128 + the signal's number for a StopSignal, 130 for Ctrl-C."""
+    return 128 + exc.signum if isinstance(exc, StopSignal) else 130
