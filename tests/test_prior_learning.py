@@ -224,3 +224,61 @@ def test_layer_norm_critic_against_a_float64_reference():
     b = agent(obs_dim=3, action_dim=2, critic_layer_norm=True)
     b.critic.load_state_dict(a.critic.state_dict())
     np.testing.assert_allclose(b.critic(obs, act).detach().numpy(), q, rtol=1e-4, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------ the prior's fit
+def _on_grid_brute_force(demos, dt):
+    """Each demonstration's eta at s_n = n dt by hand: the bracketing samples, linear in s."""
+    n_steps = int(round(1 / dt))
+    out = np.zeros((demos.num_demos, n_steps + 1, 6))
+    for d, (s, eta) in enumerate(demos.split()):
+        for n in range(n_steps + 1):
+            t = n / n_steps
+            j = min(max(int(np.searchsorted(s, t, side="right")) - 1, 0), len(s) - 2)
+            w = 0.0 if s[j + 1] == s[j] else (t - s[j]) / (s[j + 1] - s[j])
+            out[d, n] = (1 - w) * eta[j] + w * eta[j + 1]
+    return out
+
+
+def test_prior_fit_is_measured_against_the_demonstrations():
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import fit_prior, format_prior_fit, prior_fit
+    from vkgrl_newton.kmp.tables import EmpiricalReference, control_grid
+    from vkgrl_newton.tasks import get_task
+
+    demos = synthetic_demos("PegInsert", 6, action_dim=6, seed=2)
+    dt = get_task("PegInsert").kmp_dt
+    ref = _on_grid_brute_force(demos, dt)
+    mean, sd = ref.mean(0), ref.std(0, ddof=1)
+    emp = EmpiricalReference(demos, dt, ridge=0.0)
+    mu, sigma = emp(control_grid(dt))
+    np.testing.assert_allclose(mu.numpy(), mean, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.sqrt(np.diagonal(sigma.numpy(), axis1=1, axis2=2)), sd, rtol=1e-9, atol=1e-15)
+    with pytest.raises(ValueError, match="control grid"):
+        emp(torch.tensor([0.5 * dt]))
+    for reference in ("gmr", "empirical"):
+        tables = fit_prior(demos, 4, reference=reference)
+        fit = prior_fit(tables, demos)
+        assert tables.reference == reference and fit["reference"] == reference
+        np.testing.assert_allclose(fit["mean_error"], tables.mean.numpy()[:, :3] - mean[:, :3], atol=1e-12)
+        np.testing.assert_allclose(fit["demo_sd"], sd[:, :3], rtol=1e-9)
+        assert fit["max_abs_error_mm"] == pytest.approx(1e3 * np.abs(fit["mean_error"]).max(0))
+        assert "max |m[n] - their mean|" in format_prior_fit(fit)
+    # the empirical reference's sd is the demonstrations' own, and its prior follows their mean
+    assert fit["sd_ratio_max"] == pytest.approx([1.0] * 3) and fit["sd_ratio_min"] == pytest.approx([1.0] * 3)
+    assert max(fit["max_abs_error_mm"]) < 0.5
+    with pytest.raises(ValueError, match="reference='spline'"):
+        fit_prior(demos, 4, reference="spline")
+
+
+def test_empirical_tables_are_cached_apart_and_reloaded(tmp_path):
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import load_or_fit_prior
+
+    path = synthetic_demos("PegInsert", 4, action_dim=6, seed=1).save(tmp_path / "demos.npz")
+    gmr_t, gmr_path, _ = load_or_fit_prior(path, 4)
+    emp_t, emp_path, rebuilt = load_or_fit_prior(path, 4, reference="empirical")
+    assert rebuilt and emp_path.name == "demos.kmp4d_empirical.npz" and gmr_path.name == "demos.kmp4d.npz"
+    again, _, rebuilt = load_or_fit_prior(path, 4, reference="empirical")
+    assert not rebuilt and again.reference == "empirical" and torch.equal(again.mean, emp_t.mean)
+    assert not torch.equal(gmr_t.mean, emp_t.mean)

@@ -66,6 +66,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-time-obs", action="store_true", help="kmp_prior / checkpoint: policy input without time")
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"), help="kmp_prior: demonstrations, tables")
     ap.add_argument("--demos", type=Path, default=None, help="kmp_prior: your own demonstrations")
+    ap.add_argument("--kmp-reference", default="gmr", choices=("gmr", "empirical"),
+                    help="kmp_prior: the KMP's reference distribution (as train/run.py; a checkpoint's own wins)")
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
     ap.add_argument("--video", type=Path, default=None, help="GIF of the task camera (first 4 worlds, tiled)")
     args = parse_cli(ap, argv, device=True)
@@ -124,7 +126,8 @@ def main(argv=None) -> int:
 
         prior = payload["meta"].get("prior", {}) if payload is not None else {}
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device,
-                                       geometry=args.geometry, **{k: prior[k] for k in ("lam", "beta", "l") if k in prior})
+                                       geometry=args.geometry, reference=prior.get("reference", args.kmp_reference),
+                                       **{k: prior[k] for k in ("lam", "beta", "l") if k in prior})
         action_path = KGRLActionPath(tables, env)
     if payload is not None:
         from vkgrl_newton.agents.sac import SAC, SACConfig

@@ -8,7 +8,9 @@ Writes to --out (default: beside the demonstrations):
     time: the demonstrations, the GMR reference +-2 sigma, the KMP mean (eq. 3.29) with its
     +-2 sigma envelope (eq. 3.37, lambda_c), and the KGRL prior m[n] with the band a
     saturated action can reach (m[n] +- sum_j |B[n]_kj w_j|, every action in [-1, 1], Table 5.4 weights);
-  - the per-step tables `<demos>.kmp<D>d.npz` beside the demonstrations (reused when current).
+  - the per-step tables `<demos>.kmp<D>d.npz` beside the demonstrations (reused when current);
+and prints how the prior follows the demonstrations (vkgrl_newton.kmp.prior.prior_fit: the largest
+gap between m[n] and their mean, the reference's sd against theirs, the reach of a full action).
 With --synthetic the demonstrations come from the synthetic demonstrator and are saved to
 --out first (an existing file of the same name and parameters is reused, never overwritten).
 
@@ -40,6 +42,7 @@ from vkgrl_newton.kmp import (  # noqa: E402
     load_or_fit_prior,
     synthetic_demos,
 )
+from vkgrl_newton.kmp.prior import format_prior_fit, prior_fit  # noqa: E402
 from vkgrl_newton.kmp.tables import control_grid  # noqa: E402
 from vkgrl_newton.tasks import TASKS, get_task  # noqa: E402
 
@@ -58,6 +61,9 @@ def parse_args(argv=None):
     p.add_argument("--lam", type=float, default=KMP_LAMBDA)
     p.add_argument("--beta", type=float, default=KMP_BETA)
     p.add_argument("--l", type=float, default=KMP_L, help="kernel exp(-l (s_i - s_j)^2)")
+    p.add_argument("--reference", choices=("gmr", "empirical"), default="gmr",
+                   help="the KMP's reference distribution: gmr (the thesis) or empirical (the demonstrations' "
+                        "per-step mean and covariance)")
     p.add_argument("--lam-c", type=float, default=60.0, help="lambda of the KMP covariance, eq. 3.37 (Huang: 60)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: beside the demonstrations)")
     return p.parse_args(argv)
@@ -134,7 +140,7 @@ def main(argv=None) -> int:
     demos = DemoSet.load(demo_path)
     try:
         tables, tables_path, rebuilt = load_or_fit_prior(
-            demo_path, args.action_dim, args.lam, args.beta, args.l, seed=args.seed
+            demo_path, args.action_dim, args.lam, args.beta, args.l, seed=args.seed, reference=args.reference
         )
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -144,6 +150,7 @@ def main(argv=None) -> int:
     print(f"demonstrations: {demo_path} ({demos.num_demos} x {demos.source})")
     print(f"KMP tables:     {tables_path} ({'fitted' if rebuilt else 'cached'})")
     print(f"plot:           {png}")
+    print(format_prior_fit(prior_fit(tables, demos)))
     return 0
 
 

@@ -119,6 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "evaluated with one eval seed see identical initial states (default %(default)s)")
     ap.add_argument("--demos", type=Path, default=None, help="KGRL: your own demonstrations (npz)")
     ap.add_argument("--num-demos", type=int, default=16, help="KGRL: scripted demonstrations to record")
+    ap.add_argument("--kmp-reference", default=None, choices=("gmr", "empirical"),
+                    help="KGRL: the KMP's reference distribution: gmr (the thesis, eqs. 4.2-4.3; default) or empirical "
+                         "(the demonstrations' per-step mean and covariance: a deviation, see docs/benchmarks.md)")
     ap.add_argument("--vae", type=Path, default=None,
                     help="vision methods: your own trained vae.pt (train/train_vae.py) instead of the cached one")
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
@@ -301,6 +304,8 @@ def main(argv=None) -> int:
         ap.error(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl methods "
                  f"(kgrl, vision_kgrl), not {args.method!r}")
     args.latent_dim = VISION_LATENT_DIM if uses_vision(args.method) else 0
+    if args.kmp_reference is not None and not uses_kmp(args.method):
+        ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl), not {args.method!r}")
     if args.vae is not None and not uses_vision(args.method):
         ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
     if args.vae is not None:
@@ -372,9 +377,10 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     if uses_kmp(args.method):
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
-        kw = {}
+        kw = {"reference": args.kmp_reference or "gmr"}
         if payload is not None and "prior" in payload["meta"]:  # the KMP parameters it was fitted with
             kw = {k: payload["meta"]["prior"][k] for k in ("lam", "beta", "l")}
+            kw["reference"] = payload["meta"]["prior"].get("reference", "gmr")
         tables, demos_path = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos,
                                                 num_demos=args.num_demos, device=args.device, geometry=args.geometry,
                                                 log=log, **kw)

@@ -95,7 +95,7 @@ def demos_path_for(cache_dir, task: str, num_demos: int, seed: int, geometry: st
 def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path | None = None, num_demos: int = 16,
                        num_envs: int = 16, device: str | None = None, seed: int = 0,
                        geometry: str = "primitives", lam: float = KMP_LAMBDA, beta: float = KMP_BETA,
-                       l: float = KMP_L, log=print) -> tuple[KMPTables, Path]:
+                       l: float = KMP_L, reference: str = "gmr", log=print) -> tuple[KMPTables, Path]:
     """The task's KMP tables, with the demonstrations they come from recorded first if missing.
 
     demos: a demonstration npz of your own; None records `num_demos` scripted ones in the
@@ -103,7 +103,8 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
     into `cache_dir/<task>/` once and reuses them. The tables (KMP parameters lam, beta, l) are
     cached beside the demonstrations (kmp.prior.load_or_fit_prior: keyed by content). Both are
     made under the demonstration file's cache lock (`vkgrl_newton.cache`): runs started together
-    record and fit once. Returns (tables, demonstration path).
+    record and fit once. reference: the KMP's reference distribution, "gmr" (the thesis) or
+    "empirical" (kmp.tables.EmpiricalReference). Returns (tables, demonstration path).
     """
     from ..cache import entry_lock
 
@@ -120,7 +121,7 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
         if demos is None and not path.exists():
             _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log)
         tables, tables_path, rebuilt = load_or_fit_prior(path, action_dim=action_dim, lam=lam, beta=beta, l=l,
-                                                         seed=seed)
+                                                         seed=seed, reference=reference)
     log(f"KMP prior {'fitted' if rebuilt else 'loaded'}: {tables_path}")
     return tables, path
 
@@ -128,8 +129,12 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
 def prior_record(tables: KMPTables, demos_path) -> dict:
     """What a KGRL run records of its prior (checkpoint meta "prior"): the demonstration file and its
     sha256, the KMP parameters and the number of demonstrations (`cache.check_unchanged` checks the file)."""
-    return {"demos": str(demos_path), "demos_sha256": file_sha256(demos_path), "lam": float(tables.lam),
-            "beta": float(tables.beta), "l": float(tables.l), "num_demos": int(len(DemoSet.load(demos_path).demo_lengths))}
+    record = {"demos": str(demos_path), "demos_sha256": file_sha256(demos_path), "lam": float(tables.lam),
+              "beta": float(tables.beta), "l": float(tables.l),
+              "num_demos": int(len(DemoSet.load(demos_path).demo_lengths))}
+    if tables.reference != "gmr":  # absent for the thesis's GMR, so older runs' records still match
+        record["reference"] = tables.reference
+    return record
 
 
 def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log) -> None:

@@ -37,9 +37,9 @@ from ..tasks import get_task
 from .demos import DemoSet
 from .gmr import DEFAULT_N_COMPONENTS, fit_gmm
 from ..cache import file_sha256
-from .tables import KMPTables, build_kmp_tables, tables_path_for
+from .tables import REFERENCES, EmpiricalReference, KMPTables, build_kmp_tables, tables_path_for
 
-__all__ = ["KMP_LAMBDA", "KMP_BETA", "KMP_L", "fit_prior", "load_or_fit_prior"]
+__all__ = ["KMP_LAMBDA", "KMP_BETA", "KMP_L", "fit_prior", "load_or_fit_prior", "prior_fit", "format_prior_fit"]
 
 KMP_LAMBDA = 1.0
 KMP_BETA = 4.0
@@ -55,11 +55,16 @@ def fit_prior(
     n_components: int = DEFAULT_N_COMPONENTS,
     seed: int = 0,
     source_sha256: str = "",
+    reference: str = "gmr",
 ) -> KMPTables:
     """Fit the GMM to a demonstration set and precompute the KGRL tables on its task's grid.
 
     action_dim: 4 or 6; None means the demonstrations' own. 6D tables need 6D demonstrations.
+    reference: "gmr" (the thesis) or "empirical" (the demonstrations' per-step mean and
+    covariance, kmp.tables.EmpiricalReference; the GMM is still fitted and kept for plots).
     """
+    if reference not in REFERENCES:
+        raise ValueError(f"reference={reference!r}; allowed: {list(REFERENCES)}")
     spec = get_task(demos.task)
     if abs(demos.psi_ref - spec.psi_ref) > 1e-9:
         raise ValueError(
@@ -70,7 +75,9 @@ def fit_prior(
     if action_dim == 6 and demos.action_dim == 4:
         raise ValueError("action_dim: 6D tables need 6D demonstrations; these hold roll and pitch at the reference")
     gmm = fit_gmm(demos.s, demos.eta, n_components=n_components, seed=seed)
-    return build_kmp_tables(gmm, spec.kmp_dt, spec.kmp_horizon, lam, beta, l, action_dim, source_sha256, seed)
+    ref = EmpiricalReference(demos, spec.kmp_dt) if reference == "empirical" else None
+    return build_kmp_tables(gmm, spec.kmp_dt, spec.kmp_horizon, lam, beta, l, action_dim, source_sha256, seed,
+                            reference=ref)
 
 
 def load_or_fit_prior(
@@ -81,6 +88,7 @@ def load_or_fit_prior(
     l: float = KMP_L,
     n_components: int = DEFAULT_N_COMPONENTS,
     seed: int = 0,
+    reference: str = "gmr",
 ) -> tuple[KMPTables, Path, bool]:
     """Tables for a demonstration file, cached beside it (`<stem>.kmp<D>d.npz`).
 
@@ -94,7 +102,7 @@ def load_or_fit_prior(
     spec = get_task(demos.task)
     action_dim = demos.action_dim if action_dim is None else action_dim
     digest = file_sha256(demo_path)
-    path = tables_path_for(demo_path, action_dim)
+    path = tables_path_for(demo_path, action_dim, reference)
     if path.exists():
         try:
             cached = KMPTables.load(path)
@@ -109,8 +117,54 @@ def load_or_fit_prior(
             and (cached.dt, cached.horizon) == (spec.kmp_dt, spec.kmp_horizon)
             and cached.gmm.n_components == n_components
             and cached.fit_seed == int(seed)
+            and cached.reference == reference
         ):
             return cached, path, False
-    tables = fit_prior(demos, action_dim, lam, beta, l, n_components, seed, source_sha256=digest)
+    tables = fit_prior(demos, action_dim, lam, beta, l, n_components, seed, source_sha256=digest, reference=reference)
     tables.save(path)
     return tables, path, True
+
+
+def prior_fit(tables: KMPTables, demos: DemoSet) -> dict:
+    """How the prior follows its demonstrations, per control step n and position axis (x, y, z):
+
+        mean_error  m[n] - the demonstrations' mean at s_n (m), (S, 3)
+        ref_sd      the reference's sd at s_n (GMR's, or the demonstrations' for "empirical"), (S, 3)
+        demo_sd     the demonstrations' sd at s_n (ddof 1), (S, 3)
+        reach       how far a saturated action moves the command, sum_j |B[n]_ij| w_j (m), (S, 3)
+
+    and summaries over the episode: max_abs_error_mm, sd_ratio_max / sd_ratio_min (ref_sd /
+    demo_sd), reach_median_mm. The demonstrations are put on the control grid as the empirical
+    reference does (kmp.tables.demonstrations_on_grid). A fit reported against the GMR mean
+    alone cannot show a GMR that misses the demonstrations; this compares with them.
+    """
+    import numpy as np
+
+    from .gmr import gmr
+    from .tables import control_grid, demonstrations_on_grid
+
+    spec = get_task(demos.task)
+    on_grid = demonstrations_on_grid(demos, tables.dt)
+    mean, sd = on_grid.mean(0)[:, :3], on_grid.std(0, ddof=1)[:, :3]
+    if tables.reference == "empirical":
+        ref_sd = sd
+    else:
+        _, sigma = gmr(tables.gmm, control_grid(tables.dt))
+        ref_sd = np.sqrt(np.diagonal(sigma.numpy(), axis1=1, axis2=2))[:, :3]
+    err = tables.mean.numpy()[:, :3] - mean
+    w = np.array([spec.w_pos] * 3 + [spec.w_rot] * 3)
+    reach = (np.abs(tables.gain.numpy()) * w[None, None, :]).sum(-1)[:, :3]
+    ratio = ref_sd / np.maximum(sd, 1e-9)
+    return {"mean_error": err, "ref_sd": ref_sd, "demo_sd": sd, "reach": reach,
+            "max_abs_error_mm": (1e3 * np.abs(err).max(0)).tolist(), "sd_ratio_max": ratio.max(0).tolist(),
+            "sd_ratio_min": ratio.min(0).tolist(), "reach_median_mm": (1e3 * np.median(reach, 0)).tolist(),
+            "reference": tables.reference}
+
+
+def format_prior_fit(fit: dict) -> str:
+    """The summaries of `prior_fit` as lines (x, y, z)."""
+    f = lambda v, d=2: "/".join(f"{x:.{d}f}" for x in v)  # noqa: E731
+    return (f"prior vs its demonstrations ({fit['reference']} reference), x/y/z over the episode:\n"
+            f"  max |m[n] - their mean|  {f(fit['max_abs_error_mm'])} mm\n"
+            f"  reference sd / theirs    {f(fit['sd_ratio_min'])} (min) .. {f(fit['sd_ratio_max'])} (max)\n"
+            f"  reach at |a| = 1         {f(fit['reach_median_mm'])} mm (median over steps)")

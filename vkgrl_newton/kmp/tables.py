@@ -33,7 +33,7 @@ from .gmr import GMM, gmr
 from .kmp import _check_nonnegative, _check_positive
 from .pose import AXES_4D
 
-__all__ = ["KMPTables", "build_kmp_tables", "kmp_eta_torch", "kmp_pose_torch", "control_grid", "reference_window", "tables_path_for"]
+__all__ = ["KMPTables", "build_kmp_tables", "EmpiricalReference", "REFERENCES", "demonstrations_on_grid", "kmp_eta_torch", "kmp_pose_torch", "control_grid", "reference_window", "tables_path_for"]
 
 TABLES_FORMAT_VERSION = 1
 
@@ -71,6 +71,8 @@ class KMPTables:
     gmm: the GMM the reference came from (kept so the prior can be re-derived and plotted).
     source_sha256: hash of the demonstration file they were fitted to ('' if none).
     fit_seed: the random seed of the GMM fit (-1 if unknown), part of the cache key.
+    reference: "gmr" (the thesis: GMR of the GMM, eqs. 4.2-4.3) or "empirical" (the
+    demonstrations' own per-step mean and covariance, `empirical_reference`).
     """
 
     mean: torch.Tensor
@@ -84,6 +86,7 @@ class KMPTables:
     gmm: GMM
     source_sha256: str = ""
     fit_seed: int = -1
+    reference: str = "gmr"  # what (mu, Sigma) the KMP was fitted to: REFERENCES
 
     @property
     def n_steps(self) -> int:
@@ -140,6 +143,7 @@ class KMPTables:
             gmm_covariances=self.gmm.covariances.numpy(),
             source_sha256=np.str_(self.source_sha256),
             fit_seed=np.int64(self.fit_seed),
+            reference=np.str_(self.reference),
         )
 
     @classmethod
@@ -176,6 +180,7 @@ class KMPTables:
                 ),
                 source_sha256=str(data["source_sha256"]),
                 fit_seed=int(data["fit_seed"]),
+                reference=str(data["reference"]) if "reference" in data else "gmr",  # older files: GMR
             )
         except (TypeError, ValueError) as e:
             raise ValueError(f"{path}: invalid KMP tables file: {e}") from None
@@ -203,6 +208,7 @@ def build_kmp_tables(
     action_dim: int = 6,
     source_sha256: str = "",
     fit_seed: int = -1,
+    reference: EmpiricalReference | None = None,
 ) -> KMPTables:
     """Precompute m[n] and B[n] for every step of the control grid, batched over steps.
 
@@ -214,7 +220,7 @@ def build_kmp_tables(
         raise ValueError(f"gmm must model the 6D relative pose; it has {gmm.output_dim} outputs")
     windows = reference_window(dt, horizon)  # (S, W)
     n_grid, w = windows.shape
-    mu, sigma = gmr(gmm, windows.reshape(-1))
+    mu, sigma = gmr(gmm, windows.reshape(-1)) if reference is None else reference(windows.reshape(-1))
     axes = list(AXES_4D) if action_dim == 4 else list(range(6))
     o = len(axes)
     mu = mu[:, axes].reshape(n_grid, w, o)
@@ -258,6 +264,7 @@ def build_kmp_tables(
         gmm=gmm,
         source_sha256=source_sha256,
         fit_seed=int(fit_seed),
+        reference="gmr" if reference is None else "empirical",
     )
 
 
@@ -276,7 +283,47 @@ def kmp_pose_torch(step_index, zeta, mean, gain, target_pos_w, ref_quat_w):
     return target_pos_w + eta[:, :3], quat_mul(ref_quat_w, quat_exp(eta[:, 3:]))
 
 
-def tables_path_for(demo_path, action_dim: int) -> Path:
-    """Where the tables of a demonstration file live: beside it, `<stem>.kmp<D>d.npz`."""
+def tables_path_for(demo_path, action_dim: int, reference: str = "gmr") -> Path:
+    """Where the tables of a demonstration file live: beside it, `<stem>.kmp<D>d.npz` (GMR, the
+    thesis's reference) or `<stem>.kmp<D>d_<reference>.npz`."""
     demo_path = Path(demo_path)
-    return demo_path.with_name(f"{demo_path.stem}.kmp{int(action_dim)}d.npz")
+    suffix = "" if reference == "gmr" else f"_{reference}"
+    return demo_path.with_name(f"{demo_path.stem}.kmp{int(action_dim)}d{suffix}.npz")
+
+
+REFERENCES = ("gmr", "empirical")
+
+
+def demonstrations_on_grid(demos, dt: float) -> np.ndarray:
+    """Every demonstration's eta at the control grid's times s_n (each linearly interpolated in its
+    own normalized time): (num_demos, n_steps + 1, 6) float64."""
+    grid = control_grid(dt).numpy()
+    return np.stack([np.stack([np.interp(grid, s, eta[:, k]) for k in range(6)], axis=1)
+                     for s, eta in demos.split()])
+
+
+class EmpiricalReference:
+    """(mu, Sigma) at the control grid's times: the mean and covariance (ddof 1, plus `ridge` I)
+    of the demonstrations at each grid step, a deviation from the thesis's GMR (eqs. 4.2-4.3),
+    for demonstrations that share their time base (the scripted ones: one control grid).
+
+    Why: a 7-component GMM over (s, eta) cannot follow PegInsert's descent (the prior sat 4 mm
+    below the demonstrations' mean at n = 60 with an sd 2.4x theirs, docs/benchmarks.md); the
+    demonstrations' own statistics are what GMR estimates, without the mixture's bias.
+    """
+
+    def __init__(self, demos, dt: float, ridge: float = 1e-10):
+        on_grid = demonstrations_on_grid(demos, dt)
+        if on_grid.shape[0] < 2:
+            raise ValueError("the empirical reference needs >= 2 demonstrations (a covariance)")
+        self.dt = float(dt)
+        self.mu = on_grid.mean(axis=0)
+        x = on_grid - self.mu[None]
+        self.sigma = np.einsum("dsi,dsj->sij", x, x) / (on_grid.shape[0] - 1) + ridge * np.eye(6)
+
+    def __call__(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        s = torch.as_tensor(s, dtype=torch.float64)
+        k = torch.round(s / self.dt).long()
+        if (k.double() * self.dt - s).abs().max() > 1e-9:
+            raise ValueError("EmpiricalReference is defined on the control grid only")
+        return torch.as_tensor(self.mu[k.numpy()]), torch.as_tensor(self.sigma[k.numpy()])
