@@ -162,3 +162,48 @@ def test_curves_resume_drops_the_replayed_rows(tmp_path):
     assert math.isnan(read_curves(tmp_path)[0]["time_to_first_success_s"])
     with pytest.raises(ValueError, match="lacks"):
         w.append(transitions=1)
+
+
+def test_prior_gain_table_from_paired_runs(report_py, tmp_path):
+    """Labelled KGRL runs with known per-episode outcomes: their row is `kgrl+<label>`, the gain per
+    seed is policy minus prior on the same episodes, its mean over seeds and the pooled gain match
+    a hand computation, and a curve falling from 5k-10k to the last 5k shows in the two columns."""
+    root = tmp_path / "sweep"
+    policy = {0: [1, 1, 0, 0], 1: [1, 0, 0, 0], 2: [1, 1, 1, 0]}  # 2 rounds x 2 worlds, flattened
+    prior = [1, 0, 0, 0]
+    for seed, outcome in policy.items():
+        d = write_run(root, 4, "kgrl+lab", seed, (np.mean(outcome), 1.0, NAN, 10.0), total_steps=15_000)
+        config = json.loads((d / "config.json").read_text())
+        (d / "config.json").write_text(json.dumps({**config, "method": "kgrl", "label": "lab"}))
+        m = json.loads((d / "metrics.json").read_text())
+        rounds = lambda v: [{"world_success": v[:2]}, {"world_success": v[2:]}]  # noqa: E731
+        gain = float(np.mean(outcome) - np.mean(prior))
+        m.update(per_episode=rounds(outcome), prior_eval={"success_rate": 0.25, "per_episode": rounds(prior)},
+                 paired_gain={"success_rate": {"mean": gain, "ci_low": gain, "ci_high": gain, "n_pairs": 4}})
+        (d / "metrics.json").write_text(json.dumps(m))
+        (d / "curves.jsonl").unlink()
+        curves = CurveWriter(d)
+        for t, sr in ((4800, 0.0), (7200, 0.4), (9600, 0.6), (12000, 0.3), (14400, 0.1)):
+            curves.append(transitions=t, episode_reward=0.0, success_rate=sr, success_rate_any=sr,
+                          mean_contact_force=1.0, peak_contact_force=1.0, time_to_first_success_s=NAN, wall_s=1.0)
+    out = tmp_path / "report"
+    report_py.main([str(root), "--out", str(out), "--reps", "500"])
+    stats = json.loads((out / "stats.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
+    (row,) = stats["prior_gain"]
+    assert row["method"] == "kgrl+lab" and row["seeds"] == 3
+    assert row["seed_gains"] == pytest.approx([0.25, 0.0, 0.5])
+    assert row["gain_over_seeds"]["mean"] == pytest.approx(0.25)
+    pooled = np.array(sum(policy.values(), [])) - np.array(prior * 3)
+    assert row["gain_pooled"]["mean"] == pytest.approx(pooled.mean()) and row["gain_pooled"]["n_pairs"] == 12
+    assert 0.0 <= row["gain_over_seeds"]["ci_low"] <= 0.25 <= row["gain_over_seeds"]["ci_high"] <= 0.5
+    # (5k, 10k]: rows 7200 and 9600 -> 0.5; the last 5k, (9400, 14400]: rows 9600, 12000, 14400 -> 1/3
+    assert row["training_early"] == pytest.approx(0.5) and row["training_late"] == pytest.approx(1 / 3)
+    text = (out / "prior_gain.md").read_text()
+    assert "| kgrl+lab | 3 |" in text and "+0.250" in text
+
+
+def test_report_refuses_bad_reps_before_writing(report_py, runs, tmp_path, capsys):
+    out = tmp_path / "r"
+    with pytest.raises(SystemExit) as exc:
+        report_py.main([str(runs), "--out", str(out), "--reps", "-5"])
+    assert exc.value.code == 2 and "--reps -5" in capsys.readouterr().err and not out.exists()

@@ -4,7 +4,8 @@
     python train/report.py runs/train/PegInsert_* runs/sweeps/peg --out runs/reports/peg
 
 Reads every run directory under the given paths that holds a finished run (config.json and
-metrics.json) and groups the runs by configuration (task, env, action space, method); inside
+metrics.json) and groups the runs by configuration (task, env, action space, method, and the
+run's --label: a labelled run's method is shown as `<method>+<label>`); inside
 one configuration the runs must differ in their seed alone (budget, worlds, preset, SAC fields,
 geometry, time observation), else the report stops and names them. Writes to --out (a new or
 empty directory; nothing is overwritten):
@@ -20,6 +21,9 @@ empty directory; nothing is overwritten):
                          the configurations each method ran, with 95 % stratified-bootstrap
                          intervals; the probability that kgrl beats sac and that vision_kgrl
                          beats kgrl, over their shared configurations, with intervals
+  prior_gain.md          KGRL runs against their prior on the same evaluation episodes: success,
+                         the prior's, the paired gain with 95 % bootstrap intervals over seeds and
+                         over pooled episodes, training success early (5k-10k) and late (last 5k)
   curves_<task>_<env>_<D>d.png  learning curves, methods overlaid, mean +- std over seeds
                          (vkgrl_newton/results/plots.py, as train/plot_runs.py)
 
@@ -44,7 +48,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton._io import atomic_write, atomic_write_text  # noqa: E402
+from vkgrl_newton._io import atomic_write, atomic_write_text, strict_json  # noqa: E402
+from vkgrl_newton.results.curves import read_curves  # noqa: E402
+from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E402
 from vkgrl_newton.results.plots import plot  # noqa: E402
 from vkgrl_newton.results.thesis import METRICS, THESIS_METHOD_NAMES, load_thesis_tables  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, TASKS  # noqa: E402
@@ -82,7 +88,9 @@ def find_runs(paths: list[Path]) -> list[Path]:
 
 
 def cell_key(config: dict) -> tuple[str, str, int, str]:
-    return config["task"], config["env"], int(config["action_dim"]), config["method"]
+    """(task, env, D, method); a labelled run's method is shown as `<method>+<label>` (run.py --label)."""
+    method = config["method"] + (f"+{config['label']}" if config.get("label") else "")
+    return config["task"], config["env"], int(config["action_dim"]), method
 
 
 def identity(config: dict) -> dict:
@@ -111,10 +119,14 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
         if any(r["seed"] == config["seed"] for r in cells[key]):
             raise MixedCellError(f"configuration {'/'.join(map(str, key))}: two runs of seed {config['seed']} "
                                  f"({d} and another)")
-        row = {"run_dir": str(d), "seed": config["seed"]}
+        row = {"run_dir": str(d), "seed": config["seed"], "total_steps": config.get("total_steps")}
         for m in METRICS:
             v = metrics.get(m)
             row[m] = math.nan if v is None else float(v)
+        if "paired_gain" in metrics:  # a KGRL run's paired evaluation against its prior (run.py)
+            row["paired"] = {"gain": metrics["paired_gain"]["success_rate"],
+                             "prior_success": metrics["prior_eval"]["success_rate"],
+                             "policy": world_outcomes(metrics), "prior": world_outcomes(metrics["prior_eval"])}
         cells[key].append(row)
     return dict(cells)
 
@@ -229,6 +241,68 @@ def _rows(cells: dict) -> list[tuple[str, str]]:
     return sorted(pairs, key=lambda tm: _order((tm[0], "factory", 4, tm[1]))[:4])
 
 
+# ----------------------------------------------------------------------------- the prior
+def prior_gain_rows(cells: dict, reps: int) -> list[dict]:
+    """Per KGRL configuration: the final policy against its prior on the same evaluation episodes.
+
+    gain_over_seeds: the mean of the seeds' paired gains with a percentile-bootstrap interval over
+    seeds (the seed is the unit of replication); gain_pooled: all seeds' paired episodes pooled.
+    training_early / training_late: the mean over seeds of the training-episode success rate over
+    transitions (5k, 10k] and over the run's last 5k (curves.jsonl): a falling curve has late < early.
+    """
+    rows = []
+    for key in sorted(cells, key=_order):
+        runs = [r for r in cells[key] if "paired" in r]
+        if not runs:
+            continue
+        gains = np.array([r["paired"]["gain"]["mean"] for r in runs], dtype=np.float64)
+        early, late = [], []
+        for r in runs:
+            curve = read_curves(Path(r["run_dir"]))
+            if not curve:
+                continue
+            end = curve[-1]["transitions"]
+            early.append(np.nanmean([c["success_rate"] for c in curve if 5000 < c["transitions"] <= 10000] or [np.nan]))
+            late.append(np.nanmean([c["success_rate"] for c in curve if c["transitions"] > end - 5000] or [np.nan]))
+        rows.append({
+            "task": key[0], "env": key[1], "action_dim": key[2], "method": key[3], "seeds": len(runs),
+            "success": float(np.mean([r["success_rate"] for r in runs])),
+            "prior_success": float(np.mean([r["paired"]["prior_success"] for r in runs])),
+            "seed_gains": gains.tolist(),
+            "gain_over_seeds": paired_gain(gains, np.zeros_like(gains), reps=reps, seed=0),
+            "gain_pooled": paired_gain(np.concatenate([r["paired"]["policy"] for r in runs]),
+                                       np.concatenate([r["paired"]["prior"] for r in runs]), reps=reps, seed=0),
+            "training_early": float(np.nanmean(early)) if early else None,
+            "training_late": float(np.nanmean(late)) if late else None,
+        })
+    return rows
+
+
+def prior_gain_markdown(rows: list[dict]) -> str:
+    def ci(g):
+        if g["mean"] is None:
+            return DASH
+        return f"{g['mean']:+.3f} [{g['ci_low']:+.3f}, {g['ci_high']:+.3f}]"
+
+    def num(v):
+        return DASH if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
+
+    out = ["# The final policy against its KMP prior (train/report.py)", "",
+           "Each KGRL run evaluates its final policy and its prior (a = 0) on the same episodes (run.py "
+           "--eval-seed). Gain: policy minus prior success, per seed; mean over seeds with a 95 % percentile "
+           "bootstrap interval over seeds, and over all seeds' episodes pooled. Training success: the mean over "
+           "seeds of the training episodes' success over transitions (5k, 10k] and over the last 5k.", "",
+           "| Task | Env | D | Method | Seeds | Success | Prior (same episodes) | Gain over seeds [95 % CI] | "
+           "Gain, episodes pooled [95 % CI] | Training success 5k-10k | last 5k |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['task']} | {r['env']} | {r['action_dim']} | {r['method']} | {r['seeds']} | "
+                   f"{num(r['success'])} | {num(r['prior_success'])} | {ci(r['gain_over_seeds'])} | "
+                   f"{ci(r['gain_pooled'])} ({r['gain_pooled']['n_pairs']}) | {num(r['training_early'])} | "
+                   f"{num(r['training_late'])} |")
+    return "\n".join(out) + "\n"
+
+
 # ----------------------------------------------------------------------------- rliable
 def aggregate_stats(cells: dict, reps: int = 2000, seed: int = 0) -> dict:
     """IQM of success per method over its configurations, and probabilities of improvement, with
@@ -314,7 +388,11 @@ def write_report(paths: list[Path], out: Path, reps: int = 2000) -> dict:
     w.writerows(rows)
     atomic_write_text(out / "results.csv", buf.getvalue())
     stats = aggregate_stats(cells, reps=reps)
-    atomic_write_text(out / "stats.json", json.dumps(stats, indent=2))
+    gains = prior_gain_rows(cells, reps=reps)
+    if gains:
+        stats["prior_gain"] = gains
+        atomic_write_text(out / "prior_gain.md", prior_gain_markdown(gains))
+    atomic_write_text(out / "stats.json", strict_json(stats, indent=2))
     figure = stats_figure(stats)
     atomic_write(out / "stats.png", overwrite=False, write=lambda f: f.write(figure), suffix=".png")
     by_panel: dict[tuple, list[Path]] = defaultdict(list)
@@ -334,13 +412,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, required=True, help="the report's directory (new or empty)")
     ap.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (rliable)")
     args = ap.parse_args(argv)
+    if args.reps < 1:
+        ap.error(f"--reps {args.reps}: must be >= 1 (bootstrap resamples)")
+    if args.out.exists() and not args.out.is_dir():
+        ap.error(f"--out {args.out} is a file; give a new or empty directory")
     if args.out.exists() and any(args.out.iterdir()):
         ap.error(f"--out {args.out} is not empty; choose another directory (reports are never overwritten)")
     try:
         summary = write_report(args.paths, args.out, reps=args.reps)
     except (FileNotFoundError, MixedCellError) as e:
         ap.error(str(e))
-    print(json.dumps(summary["stats"], indent=2))
+    print(strict_json({k: v for k, v in summary["stats"].items() if k != "prior_gain"}, indent=2))
     print(f"train/report.py: {summary['runs']} runs, {summary['configurations']} configurations -> {args.out}")
     return 0
 
