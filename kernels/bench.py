@@ -24,7 +24,6 @@ control law itself); building their 4096-world model takes a few seconds.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -39,6 +38,7 @@ import torch
 import warp as wp
 
 from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS
+from .._io import atomic_write_text, strict_json
 from ..runtime import parse_cli
 from .kmp_horizon import kmp_horizon_pose, mat66f, vec6f
 from .osc import osc_torques, osc_torques_torch
@@ -390,19 +390,27 @@ def main(argv=None) -> int:
     p.add_argument("--devices", nargs="+", default=None, help="warp devices (default: cpu and cuda:0 if present)")
     p.add_argument("--warmup", type=int, default=10)
     p.add_argument("--repeats", type=int, default=100)
-    p.add_argument("--json", default="runs/bench/kernels.json", help="where to write the results")
+    p.add_argument("--json", default=None,
+                   help="where to write the results, a new file (never overwritten; default "
+                        "runs/bench/kernels_<date-time>.json, a new file per run)")
     p.add_argument("--only", nargs="+", default=None, help=f"case names, from {[c.name for c in CASES]}")
     p.add_argument("--torch-threads", type=int, default=1, help="torch CPU threads (0: torch's default)")
     args = parse_cli(p, argv)
     if args.torch_threads < 0:
-        raise SystemExit(f"--torch-threads must be >= 0, got {args.torch_threads}")
+        p.error(f"--torch-threads {args.torch_threads}: must be >= 0 (0: torch's default)")
+    if min(args.batch) < 1 or args.warmup < 0 or args.repeats < 1:
+        p.error(f"--batch {args.batch} / --warmup {args.warmup} / --repeats {args.repeats}: batches and repeats "
+                "must be >= 1, warmup >= 0")
+    if args.only is not None and set(args.only) - {c.name for c in CASES}:
+        p.error(f"--only {sorted(set(args.only) - {c.name for c in CASES})}: unknown; cases are {[c.name for c in CASES]}")
+    out = Path(args.json or f"runs/bench/kernels_{time.strftime('%Y%m%d-%H%M%S')}.json")
+    if out.exists():  # checked before the benchmark runs, not after
+        p.error(f"--json {out} exists; choose another path (results are never overwritten)")
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
 
     devices = args.devices or (["cpu"] + (["cuda:0"] if wp.is_cuda_available() else []))
     cases = [c for c in CASES if args.only is None or c.name in args.only]
-    if args.only and len(cases) != len(args.only):
-        raise SystemExit(f"--only: unknown case in {args.only}; cases are {[c.name for c in CASES]}")
     rows = []
     name_w = max([14] + [len(c.name) for c in cases])
     header = (f"{'kernel':<{name_w}} {'device':<8} {'batch':>6} {'warp us':>10} {'torch us':>10} {'torch/warp':>10} "
@@ -425,13 +433,9 @@ def main(argv=None) -> int:
                 ratio = "-" if t_torch is None else f"{t_torch / t_warp:.2f}"
                 print(f"{case.name:<{name_w}} {device:<8} {batch:>6} {t_warp * 1e6:>10.1f} {torch_us:>10} "
                       f"{ratio:>10} {batch / t_warp / 1e6:>12.3f}")
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
     result = dict(machine=_machine(), warmup=args.warmup, repeats=args.repeats, rows=rows,
                   date=time.strftime("%Y-%m-%d %H:%M:%S"))
-    tmp = out.with_suffix(out.suffix + ".tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, out)
+    atomic_write_text(out, strict_json(result, indent=2))  # FileExistsError rather than overwrite
     print(f"\nwrote {out}")
     return 0
 

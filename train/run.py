@@ -43,25 +43,19 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import torch
-from tqdm import tqdm
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton.cli_types import positive_int  # noqa: E402
-from vkgrl_newton.signals import exit_code, stop_signals_as_interrupts  # noqa: E402
-
+# Light imports only above the parser (no torch, Warp, Newton or rsl-rl): --help and every argument
+# error answer in well under a second; the heavy modules load once the arguments are checked.
 from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
-from vkgrl_newton.agents.checkpoint import check_meta, load_checkpoint, save_checkpoint  # noqa: E402
-from vkgrl_newton.agents.evaluation import AgentPolicy, evaluate, policy_observation  # noqa: E402
-from vkgrl_newton.agents.sac import SAC, SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
+from vkgrl_newton.agents.sac_config import SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.cache import check_run_files  # noqa: E402
-from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, TASK_GEOMETRY, observation_dim  # noqa: E402
+from vkgrl_newton.cli_types import add_verbose_flag, positive_int  # noqa: E402
 from vkgrl_newton.results.curves import CURVES_FILE, CurveWriter  # noqa: E402
 from vkgrl_newton.results.paired import EVAL_SEED, format_gain, paired_gain, seed_evaluation, world_outcomes  # noqa: E402
-from vkgrl_newton.runtime import add_verbose_flag, configure_warp, default_device  # noqa: E402
-from vkgrl_newton.sim.scene import GEOMETRIES, SimConfig, geometry_error  # noqa: E402
-from vkgrl_newton.tasks import METHODS, TASKS  # noqa: E402
+from vkgrl_newton.signals import exit_code, stop_signals_as_interrupts  # noqa: E402
+from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, METHODS, TASKS, geometry_error,  # noqa: E402
+                                observation_dim)
 
 # what a run writes in its directory; one holding any of them holds a run (other files, such as a
 # sweep's train.log, may sit beside them)
@@ -169,6 +163,8 @@ def parse_sac_overrides(items: list[str]) -> dict:
 
 def unavailable(args) -> str | None:
     """Why this combination cannot run yet, or None."""
+    from vkgrl_newton.envs.assembly_env import TASK_GEOMETRY
+
     if args.task not in TASK_GEOMETRY:
         return f"task {args.task!r} is not simulated yet; available tasks: {sorted(TASK_GEOMETRY)}"
     return None
@@ -221,11 +217,12 @@ def _explicit_args(argv) -> set[str]:
 def main(argv=None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
-    configure_warp(args.verbose)
     args.sac_config, payload = None, None
     if args.resume:  # the run's identity comes from its checkpoint (a damaged one stops here)
         if args.run_dir is None:
             ap.error("--resume needs --run-dir (the run to continue)")
+        from vkgrl_newton.agents.checkpoint import load_checkpoint
+
         try:
             payload = load_checkpoint(args.run_dir / "checkpoints" / "last.pt", map_location="cpu")
         except (FileNotFoundError, ValueError) as e:
@@ -259,10 +256,6 @@ def main(argv=None) -> int:
                 setattr(args, name, value)
         if not args.sac:
             args.sac_config = SACConfig(**meta["sac"])
-    reason = unavailable(args)
-    if reason is not None:
-        print(f"train/run.py: {reason}", file=sys.stderr)
-        return 2
     if geometry_error(args.task, args.geometry):
         ap.error(f"--{geometry_error(args.task, args.geometry)}")
     if args.geometry == "mesh" and uses_vision(args.method):
@@ -275,17 +268,58 @@ def main(argv=None) -> int:
     if not 0 <= args.eval_seed < 2**63:
         ap.error(f"--eval-seed {args.eval_seed}: must be in [0, 2**63)")
     if args.num_demos < 2:
-        ap.error("--num-demos must be >= 2")
+        ap.error(f"--num-demos {args.num_demos}: must be >= 2")
+    if not 0 <= args.seed < 2**32:
+        ap.error(f"--seed {args.seed}: must be in [0, 2**32)")
+    if args.demos is not None and not uses_kmp(args.method) and not args.resume:
+        ap.error(f"--demos is for the kgrl methods (kgrl, vision_kgrl), not {args.method!r}")
     try:
         args.sac_overrides = parse_sac_overrides(args.sac)
     except ValueError as e:
         ap.error(str(e))
+    # the SAC config checked before torch and Warp are imported, with the preset the device implies
+    # when it is given (a CUDA default is known only below; then it is checked again there)
+    provisional = args.preset or ("thesis" if (args.device or "").startswith("cuda") else "quick")
+    checked = args.sac_config
+    if checked is None:
+        try:
+            checked = make_sac_config(provisional, **{**METHOD_SAC_DEFAULTS.get(args.method, {}), **args.sac_overrides})
+        except ValueError as e:
+            ap.error(f"--sac: {e}")
+    prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(checked, f)]
+    if prior_only and not uses_kmp(args.method):
+        ap.error(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl methods "
+                 f"(kgrl, vision_kgrl), not {args.method!r}")
+    if args.kmp_reference is not None and not uses_kmp(args.method):
+        ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl), not {args.method!r}")
+    if args.vae is not None and not uses_vision(args.method):
+        ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
+    if args.run_dir is not None and args.run_dir.exists() and not args.run_dir.is_dir():
+        ap.error(f"--run-dir {args.run_dir} is a file; give a directory (new, or a run's with --resume)")
+
+    reason = unavailable(args)  # (imports the env's module: the heavy part starts here)
+    if reason is not None:
+        print(f"train/run.py: {reason}", file=sys.stderr)
+        return 2
+    from vkgrl_newton.runtime import configure_warp, default_device  # torch and Warp from here on
+
+    if args.demos is not None and not args.resume:  # a missing, damaged or foreign file stops here
+        from vkgrl_newton.kmp.demos import DemoSet
+
+        try:
+            demo_task = DemoSet.load(args.demos).task
+        except (FileNotFoundError, ValueError) as e:
+            ap.error(f"--demos: {e}")
+        if demo_task != args.task:
+            ap.error(f"--demos {args.demos}: demonstrations of {demo_task}, not --task {args.task}")
+    configure_warp(args.verbose)
     args.device = args.device or default_device()
     args.preset = args.preset or ("thesis" if args.device.startswith("cuda") else "quick")
     if args.sac_config is None:
         try:
-            args.sac_config = make_sac_config(args.preset, **{**METHOD_SAC_DEFAULTS.get(args.method, {}),
-                                                              **args.sac_overrides})
+            args.sac_config = (checked if args.preset == provisional else
+                               make_sac_config(args.preset, **{**METHOD_SAC_DEFAULTS.get(args.method, {}),
+                                                               **args.sac_overrides}))
         except ValueError as e:
             ap.error(f"--sac: {e}")
     defaults = RUN_DEFAULTS[args.preset]
@@ -299,15 +333,7 @@ def main(argv=None) -> int:
     ckpt_path = run_dir / "checkpoints" / "last.pt"
     if not args.resume and any((run_dir / name).exists() for name in RUN_FILES):
         ap.error(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another directory")
-    prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(args.sac_config, f)]
-    if prior_only and not uses_kmp(args.method):
-        ap.error(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl methods "
-                 f"(kgrl, vision_kgrl), not {args.method!r}")
     args.latent_dim = VISION_LATENT_DIM if uses_vision(args.method) else 0
-    if args.kmp_reference is not None and not uses_kmp(args.method):
-        ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl), not {args.method!r}")
-    if args.vae is not None and not uses_vision(args.method):
-        ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
     if args.vae is not None:
         from vkgrl_newton.vision.vae import load_vae
 
@@ -324,6 +350,8 @@ def main(argv=None) -> int:
             now = run_meta(args, args.obs_dim, args.sac_config)
             for m in (saved, now):  # the default geometry is not stored; name it in a mismatch
                 m.setdefault("geometry", "primitives")
+            from vkgrl_newton.agents.checkpoint import check_meta
+
             check_meta(saved, now, ckpt_path)
         except ValueError as e:
             ap.error(f"--resume: {e}")
@@ -342,10 +370,18 @@ def _without_file_records(meta: dict) -> dict:
 
 
 def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
+    import torch
     from torch.utils.tensorboard import SummaryWriter
+    from tqdm import tqdm
 
+    from vkgrl_newton.agents.checkpoint import save_checkpoint
+    from vkgrl_newton.agents.evaluation import policy_observation
+    from vkgrl_newton.agents.sac import SAC
     from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
+    from vkgrl_newton.sim.scene import SimConfig
 
+    if _TORCH_THREADS:
+        torch.set_num_threads(_TORCH_THREADS)
     torch.manual_seed(args.seed)
     log = tqdm.write
     log(f"train/run.py: {args.method} {args.task} {args.env} {args.action_dim}D on device {args.device} -> {run_dir}")
@@ -593,7 +629,7 @@ def plan(args) -> dict:
 def final_evaluation(args, env, agent, action_path, time_obs: bool) -> dict:
     """The trained policy (deterministic) on the evaluation episodes of --eval-seed; a KGRL run's
     prior (a = 0) on the same episodes ("prior_eval"), and the paired gain of the policy over it."""
-    from vkgrl_newton.agents.evaluation import KMPPriorPolicy
+    from vkgrl_newton.agents.evaluation import AgentPolicy, KMPPriorPolicy, evaluate
 
     seed_evaluation(env, args.eval_seed)
     metrics = evaluate(env, AgentPolicy(agent, action_path, time_obs), args.eval_episodes,
@@ -621,14 +657,20 @@ def paired_line(metrics: dict) -> str:
 
 
 def _rng_state(env) -> dict:
+    import torch
+
     return {"torch": torch.get_rng_state(), "env_torch": env.generator.get_state()}
 
 
 def _restore_rng(state: dict, env) -> None:
+    import torch
+
     torch.set_rng_state(state["torch"])
     env.generator.set_state(state["env_torch"])  # (older checkpoints also hold an unused "env_numpy")
 
 
+_TORCH_THREADS = None  # set when run as a program: one intra-op thread (the loop overlaps env and learner)
+
 if __name__ == "__main__":
-    torch.set_num_threads(1)
+    _TORCH_THREADS = 1
     sys.exit(main())

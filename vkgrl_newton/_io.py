@@ -21,7 +21,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import torch
 
 __all__ = ["atomic_write", "atomic_savez", "atomic_write_text", "strict_json", "load_npz", "NPZ_READ_ERRORS",
            "CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "check_meta"]
@@ -108,6 +107,9 @@ def load_npz(path, what: str, required: tuple[str, ...]) -> dict:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{what} file {path} does not exist")
+    if not path.is_file() or not zipfile.is_zipfile(path):  # (numpy's own message would suggest pickle)
+        raise ValueError(f"{path}: not a {what} file (an .npz archive); this is "
+                         f"{'a directory' if path.is_dir() else 'some other file'}")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
@@ -121,6 +123,8 @@ def load_npz(path, what: str, required: tuple[str, ...]) -> dict:
 
 def save_checkpoint(path, payload: dict) -> Path:
     """Write `payload` (with "format" added) to `path` atomically; replaces an older checkpoint."""
+    import torch  # here, not at the top: the CLIs import this module before parsing their arguments
+
     return atomic_write(path, overwrite=True, write=lambda f: torch.save({"format": CHECKPOINT_FORMAT, **payload}, f))
 
 
@@ -132,6 +136,8 @@ def load_checkpoint(path, map_location="cpu", required: Sequence[str] = (),
     `required`: the top-level keys this kind of checkpoint must hold ("format" is always
     required). `hint`: what to do about a damaged file, for the message.
     """
+    import torch
+
     path = Path(path)
     required = ("format", *(k for k in required if k != "format"))
     if not path.is_file():

@@ -28,3 +28,8 @@ def nonnegative_int(text: str) -> int:
 
 def positive_float(text: str) -> float:
     return _number(text, float, lambda v: math.isfinite(v) and v > 0, "a finite number > 0")
+
+
+def add_verbose_flag(parser) -> None:
+    """`--verbose`: Warp's own messages (banner, module loads) back on."""
+    parser.add_argument("--verbose", action="store_true", help="show Warp's messages (banner, kernel module loads)")

@@ -10,6 +10,8 @@ import tempfile
 import torch
 import warp as wp
 
+from .cli_types import add_verbose_flag  # noqa: F401  (a name of this module too)
+
 __all__ = ["default_device", "torch_device", "configure_warp", "add_verbose_flag", "parse_cli"]
 
 # what Warp's native init prints on a machine without a GPU; nothing a CPU run can act on
@@ -49,11 +51,6 @@ def configure_warp(verbose: bool = False) -> None:
             rest = [ln for ln in caught.read().decode(errors="replace").splitlines(True) if _NO_DRIVER not in ln]
             if rest:
                 sys.stderr.write("".join(rest))
-
-
-def add_verbose_flag(parser) -> None:
-    """`--verbose`: Warp's own messages (banner, module loads) back on."""
-    parser.add_argument("--verbose", action="store_true", help="show Warp's messages (banner, kernel module loads)")
 
 
 def parse_cli(parser, argv=None, device: bool = False):

@@ -56,6 +56,25 @@ _deg = math.radians
 FAMILIES = ("factory", "forge")
 ACTION_DIMS = (4, 6)
 METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
+# The parts' collision geometry (sim/scene.py): the primitives everywhere; tooth / thread meshes
+# (SDFs on CUDA) for the tasks whose primitives are approximations.
+GEOMETRIES = ("primitives", "mesh")
+MESH_TASKS = ("GearMesh", "NutThread")
+
+
+def geometry_error(task: str, geometry: str) -> str | None:
+    """Why `geometry` does not exist for `task` (a message naming the allowed values), or None."""
+    if geometry not in GEOMETRIES:
+        return f"geometry must be one of {GEOMETRIES}, got {geometry!r}"
+    if geometry == "mesh" and task not in MESH_TASKS:
+        return f"geometry 'mesh' exists for {sorted(MESH_TASKS)}, not {task} (its primitives are exact)"
+    return None
+
+
+def observation_dim(family: str, vision_latent_dim: int = 0) -> int:
+    """Thesis eq. 5.5: s_t (1), TCP position in the target frame (3), TCP quaternion (4), Forge's
+    smoothed force (3), the vision latent."""
+    return 8 + (3 if family == "forge" else 0) + vision_latent_dim
 
 TASKS: dict[str, TaskSpec] = {
     "PegInsert": TaskSpec(

@@ -22,7 +22,7 @@ import warnings
 import torch
 import torch.nn.functional as F
 
-MATMUL_BACKENDS = ("onednn", "torch")
+from vkgrl_newton.agents.sac_config import MATMUL_BACKENDS  # noqa: E402,F401  (the names live with the config)
 
 
 def _onednn_mm(a: torch.Tensor, b_t: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:

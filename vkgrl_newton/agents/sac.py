@@ -1,6 +1,7 @@
 """Soft Actor-Critic (Haarnoja et al. 2018), as trained in the thesis (Table 5.3, SBX).
 
-Read top to bottom: config and presets, replay buffer, actor, critic ensemble, the agent.
+Read top to bottom: replay buffer, actor, critic ensemble, the agent (the config and its
+presets: agents/sac_config.py).
 Everything lives on one training device; the N worlds of the simulator are added as one batch.
 
 Time-out convention (the caller's job): `add(obs, action, reward, next_obs, terminated)` takes
@@ -13,7 +14,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -21,144 +21,14 @@ import torch.nn.functional as F
 from rsl_rl.modules import EmpiricalNormalization
 from torch import nn
 
-from vkgrl_newton.agents.dense import (MATMUL_BACKENDS, ensemble_linear, ensemble_map, ensemble_stack, linear,
-                                      resolve_backend)
+from vkgrl_newton.agents.dense import ensemble_linear, ensemble_map, ensemble_stack, linear, resolve_backend
+# the configuration is plain data in a module of its own (no torch: the CLIs parse with it)
+from vkgrl_newton.agents.sac_config import (ACTIVATION_NAMES, LOG_STD_BOUNDS, SAC_PRESETS, WARMUPS,  # noqa: F401
+                                           SACConfig, make_sac_config)
 
 Tensor = torch.Tensor
 ACTIVATIONS: dict[str, type[nn.Module]] = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh}
-WARMUPS = ("uniform", "policy")
-LOG_STD_BOUNDS = ("clamp", "tanh")
-
-
-@dataclass(frozen=True)
-class SACConfig:
-    buffer_size: int = 1_000_000
-    batch_size: int = 256
-    lr: float = 4e-4
-    # Counted in env transitions summed over worlds (one batched step of N worlds adds N), as
-    # SB3/SBX count num_timesteps; until then `explore` gives the warm-up actions.
-    learning_starts: int = 5_000
-    # Warm-up actions before learning_starts: "uniform" in [-1, 1] (SB3/SBX, the thesis's code),
-    # or "policy": the untrained actor's samples (with actor_init_std, a small cloud around a = 0;
-    # for KGRL that is the KMP prior, where uniform actions throw the part ~7 mm off the prior).
-    warmup: str = "uniform"
-    train_every: int = 1  # batched env steps between two `update` calls
-    gradient_steps: int = 512  # per `update` call
-    n_critics: int = 2
-    hidden_dims: tuple[int, ...] = (512, 256, 128)
-    activation: str = "elu"
-    obs_normalization: bool = True
-    # rsl-rl EmpiricalNormalization's eps: inputs are (x - mean) / (std + eps), so a dimension
-    # whose spread is below eps is not blown up to unit scale. rsl-rl's default 1e-2 squeezes
-    # KGRL's TCP offsets (std 6-9 mm) to ~0.4 (docs/benchmarks.md).
-    obs_norm_eps: float = 1e-2
-    # Decoupled weight decay of AdamW for actor and critics. 1e-4 is optax.adamw's default,
-    # which the thesis used through SBX (torch's default would be 1e-2). log_alpha uses plain
-    # Adam, as in SBX: decaying it would pull alpha towards 1.
-    weight_decay: float = 1e-4
-    policy_delay: int = 4  # critic updates per actor + temperature update
-    gamma: float = 0.99
-    tau: float = 0.005  # Polyak rate; targets move after every critic update, as in SBX
-    init_alpha: float = 1.0
-    target_entropy: float | None = None  # None -> -dim(A)
-    # Hard clamp to [-20, 2] as SB3/SBX (the thesis's code); CleanRL's [-5, 2] is tighter.
-    log_std_min: float = -20.0
-    log_std_max: float = 2.0
-    # None: the default init (std ~1 at the start). A number: the actor starts at mean 0 with this
-    # std (pre-tanh) whatever the observation, as RSL-RL-SAC's small-sigma init: for KGRL a = 0 is
-    # the prior, and std ~1 explores ~7 mm around it against a 0.06 mm clearance (docs/benchmarks.md)
-    actor_init_std: float | None = None
-    # How log_std is kept in [log_std_min, log_std_max]: "clamp" (SB3/SBX, the thesis's code: no
-    # gradient beyond the bounds, so a std pushed to the bound stays there) or "tanh" (CleanRL,
-    # SpinningUp: log_std_min + (max - min) (tanh(x) + 1) / 2, a gradient everywhere; with a tight
-    # bound the std can shrink again once the entropy target asks for it).
-    log_std_bound: str = "clamp"
-    # IBRL (Hu et al. 2024) with the prior as the reference policy, for KGRL where a = 0 is the KMP
-    # prior: when acting and in the critic's target, take a = 0 instead of the actor's action
-    # where the critics (min over the ensemble) value a = 0 more. Off in the thesis.
-    prior_anchor: bool = False
-    # Actor and temperature updates wait until the buffer holds a rewarded transition (the critic
-    # trains from learning_starts on): before that the critic's action gradient has no signal and
-    # only moves the policy away from where it started (a = 0, the prior, for KGRL). Off in the thesis.
-    actor_after_reward: bool = False
-    # LayerNorm after every hidden layer of the critics (RLPD, SERL): bounds Q's extrapolation to
-    # actions the data does not cover. Off in the thesis.
-    critic_layer_norm: bool = False
-    # RLPD's symmetric sampling: this fraction of every minibatch comes from the prior buffer (the
-    # prior's own rollouts, prior_rollouts below), the rest from the online buffer; 0: one buffer (thesis).
-    prior_ratio: float = 0.0
-    # The first prior_rollouts transitions act a = 0 exactly (for KGRL: the prior's own rollouts,
-    # counted in the run's transitions like any other) and, with prior_ratio > 0, are kept in the
-    # prior buffer for good: a critic that always sees the prior's actions knows their value.
-    prior_rollouts: int = 0
-    # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel) or
-    # "torch" (MKL; its AVX2 path on AMD). Not a hyperparameter: float32 last bits differ.
-    cpu_matmul: str = "onednn"
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "hidden_dims", tuple(int(h) for h in self.hidden_dims))
-        if self.warmup not in WARMUPS:
-            raise ValueError(f"SACConfig.warmup={self.warmup!r}; allowed: {list(WARMUPS)}")
-        if self.cpu_matmul not in MATMUL_BACKENDS:
-            raise ValueError(f"SACConfig.cpu_matmul={self.cpu_matmul!r}; allowed: {list(MATMUL_BACKENDS)}")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"SACConfig.activation={self.activation!r}; allowed: {sorted(ACTIVATIONS)}")
-        if self.prior_rollouts < 0:
-            raise ValueError(f"SACConfig.prior_rollouts={self.prior_rollouts!r} must be >= 0")
-        if self.prior_ratio > 0 and self.prior_rollouts == 0:
-            raise ValueError("SACConfig.prior_ratio > 0 samples the prior buffer: give prior_rollouts > 0 to fill it")
-        for name in ("buffer_size", "batch_size", "train_every", "gradient_steps", "n_critics", "policy_delay"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be >= 1")
-        if not self.hidden_dims or min(self.hidden_dims) < 1:
-            raise ValueError(f"SACConfig.hidden_dims={self.hidden_dims!r} must be non-empty positive ints")
-        if not self.log_std_min < self.log_std_max:
-            raise ValueError("SACConfig.log_std_min must be < log_std_max")
-        if self.actor_init_std is not None and not (
-                math.exp(self.log_std_min) <= self.actor_init_std <= math.exp(self.log_std_max)):
-            raise ValueError(f"SACConfig.actor_init_std={self.actor_init_std!r} must be None or within "
-                             f"[exp(log_std_min), exp(log_std_max)]")
-        for name, lo, hi in (("tau", 0.0, 1.0), ("gamma", 0.0, 1.0)):
-            if not lo < getattr(self, name) <= hi:
-                raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be in ({lo}, {hi}]")
-        if not self.init_alpha > 0 or not self.lr > 0:
-            raise ValueError("SACConfig.init_alpha and SACConfig.lr must be > 0")
-        if self.log_std_bound not in LOG_STD_BOUNDS:
-            raise ValueError(f"SACConfig.log_std_bound={self.log_std_bound!r}; allowed: {list(LOG_STD_BOUNDS)}")
-        if not 0.0 <= self.prior_ratio < 1.0:
-            raise ValueError(f"SACConfig.prior_ratio={self.prior_ratio!r} must be in [0, 1)")
-        for name in ("lr", "init_alpha", "obs_norm_eps", "weight_decay", "log_std_min", "log_std_max", "gamma", "tau"):
-            if not math.isfinite(float(getattr(self, name))):
-                raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be finite")
-        if self.weight_decay < 0:
-            raise ValueError(f"SACConfig.weight_decay={self.weight_decay!r} must be >= 0")
-        if self.buffer_size < self.batch_size:
-            raise ValueError(f"SACConfig.buffer_size={self.buffer_size} must be >= batch_size={self.batch_size}")
-        if not self.obs_norm_eps > 0:
-            raise ValueError(f"SACConfig.obs_norm_eps={self.obs_norm_eps!r} must be > 0")
-
-
-SAC_PRESETS: dict[str, SACConfig] = {
-    "thesis": SACConfig(),  # Table 5.3; gamma, tau, alpha, entropy target, log_std bounds: SBX defaults
-    # A 2-core CPU, 16 worlds: a smaller net, an early start and 16 gradient steps per batched env
-    # step (update-to-data ratio 1): measured against 32 (ratio 2) on kgrl seeds 0-1 it learned at
-    # least as well at equal transitions (success 0.34 / 0.03 against 0.09 / 0.00) in ~0.8x the
-    # wall, and it balances the learner against the env for the overlapped loop (docs/benchmarks.md).
-    "quick": SACConfig(
-        buffer_size=200_000, hidden_dims=(256, 256), learning_starts=1_024, gradient_steps=16, policy_delay=2
-    ),
-}
-
-
-def make_sac_config(preset: str = "thesis", **overrides: object) -> SACConfig:
-    """A preset with some fields replaced; ValueError names an unknown preset or field."""
-    if preset not in SAC_PRESETS:
-        raise ValueError(f"unknown SAC preset {preset!r}; allowed: {sorted(SAC_PRESETS)}")
-    fields = {f.name for f in dataclasses.fields(SACConfig)}
-    for name in overrides:
-        if name not in fields:
-            raise ValueError(f"unknown SACConfig field {name!r}; allowed: {sorted(fields)}")
-    return dataclasses.replace(SAC_PRESETS[preset], **overrides)
+assert tuple(ACTIVATIONS) == ACTIVATION_NAMES
 
 
 # ----------------------------------------------------------------------------- replay buffer

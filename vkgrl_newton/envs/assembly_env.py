@@ -79,7 +79,7 @@ from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from
 from ..runtime import torch_device
 from ..sim.physics import ActionBuffers, ControllerBuffers, ForceBuffers, PhysicsStepper
 from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene
-from ..tasks import ACTION_DIMS, FAMILIES, get_task
+from ..tasks import ACTION_DIMS, FAMILIES, get_task, observation_dim  # noqa: F401  (observation_dim: a name of this module too)
 
 __all__ = ["EnvConfig", "AssemblyEnv", "FAMILIES", "ACTION_DIMS", "TASK_GEOMETRY"]
 
@@ -205,12 +205,6 @@ class EnvConfig:
     @property
     def dynamics_randomized(self) -> bool:
         return self.family == "forge" if self.randomize_dynamics is None else bool(self.randomize_dynamics)
-
-
-def observation_dim(family: str, vision_latent_dim: int = 0) -> int:
-    """Thesis eq. 5.5: s_t (1), TCP position in the target frame (3), TCP quaternion (4), Forge's
-    smoothed force (3), the vision latent."""
-    return 8 + (3 if family == "forge" else 0) + vision_latent_dim
 
 
 def _vec(t: torch.Tensor, dtype):

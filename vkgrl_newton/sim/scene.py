@@ -30,7 +30,7 @@ from ..assets_usd import dimensions as dims
 from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS  # noqa: F401  the env takes them from here
 from ..rotations import quat_conjugate, quat_mul, quat_rotate
 from ..runtime import default_device
-from ..tasks import DECIMATION, SIM_DT, get_task
+from ..tasks import DECIMATION, GEOMETRIES, MESH_TASKS, SIM_DT, geometry_error, get_task  # noqa: F401  (names of this module too)
 
 __all__ = ["SimConfig", "Scene", "build_scene", "default_device", "SOLVERS"]
 
@@ -40,8 +40,7 @@ SOLVERS = ("mujoco", "steel")
 # threads; assets_usd/part_meshes.py) which on CUDA get signed distance fields (Newton builds
 # mesh SDFs on CUDA only) and on a CPU collide through Newton's triangle BVH path (slow: NutThread
 # env steps ~30x slower than on the primitives with newton 1.8.0; docs/benchmarks.md, "The mesh variant")
-GEOMETRIES = ("primitives", "mesh")
-SDF_VOXEL = {"GearMesh": 0.00025, "NutThread": 0.0001}  # m: a quarter of a tooth clearance, half a thread crest
+SDF_VOXEL = {"GearMesh": 0.00025, "NutThread": 0.0001}  # m (keys: tasks.MESH_TASKS): a quarter of a tooth clearance, half a thread crest
 SDF_BAND = (-0.002, 0.002)  # m, narrow band of the SDFs
 SDF_MARGIN = 0.005  # m, AABB padding of the SDFs (more than any contact gap here)
 # Thread mesh grid (columns per turn, rows per pitch). With an SDF the grid only sets how exact the
@@ -49,14 +48,6 @@ SDF_MARGIN = 0.005  # m, AABB padding of the SDFs (more than any contact gap her
 # 48 x 8 threads as well as 96 x 32 (2.01 vs 1.96 mm/turn) at about a ninth of the cost per frame.
 THREAD_MESH_GRID = {"sdf": (96, 32), "bvh": (48, 8)}
 
-
-def geometry_error(task: str, geometry: str) -> str | None:
-    """Why `geometry` does not exist for `task` (a message naming the allowed values), or None."""
-    if geometry not in GEOMETRIES:
-        return f"geometry must be one of {GEOMETRIES}, got {geometry!r}"
-    if geometry == "mesh" and task not in SDF_VOXEL:
-        return f"geometry 'mesh' exists for {sorted(SDF_VOXEL)}, not {task} (its primitives are exact)"
-    return None
 
 ARM_DOFS = 7
 

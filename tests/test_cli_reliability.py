@@ -1,0 +1,146 @@
+"""The command lines as a user meets them (issue 27, first part): argument errors before anything
+heavy is imported, SIGTERM handled like Ctrl-C by a real training process, files never overwritten
+and written with the umask, strict JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from scripts import ROOT
+
+TINY = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac", "batch_size=8",
+        "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000"]
+HEAVY = ("torch", "warp", "newton", "rsl_rl")
+
+PROBE = """
+import sys, runpy
+sys.argv = ["train/run.py", *{argv!r}]
+try:
+    runpy.run_path("train/run.py", run_name="__main__")
+except SystemExit as e:
+    code = e.code
+print("EXIT", code, "HEAVY", sorted(m for m in {heavy!r} if m in sys.modules))
+"""
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--help"], None),
+    (["--num-envs", "0"], "--num-envs: must be an integer >= 1"),
+    (["--method", "ppo2"], "invalid choice: 'ppo2'"),
+    (["--sac", "lr=inf"], "lr=inf must be finite"),
+    (["--sac", "weight_decay=-1"], "weight_decay=-1.0 must be >= 0"),
+    (["--sac", "buffer_size=8", "--sac", "batch_size=16"], "buffer_size=8 must be >= batch_size=16"),
+    (["--sac", "prior_anchor=true", "--method", "sac"], "--sac prior_anchor: acts with or learns from the KMP prior"),
+    (["--kmp-reference", "empirical", "--method", "sac"], "--kmp-reference is for the kgrl methods"),
+    (["--eval-episodes", "-1"], "--eval-episodes -1: must be >= 0"),
+    (["--label", "a b"], "--label 'a b': 1-40 characters"),
+])
+def test_run_py_argument_errors_come_before_any_heavy_import(argv, message, tmp_path):
+    out = subprocess.run([sys.executable, "-c", PROBE.format(argv=argv, heavy=HEAVY)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    last = out.stdout.strip().splitlines()[-1]
+    assert last.endswith("HEAVY []"), (last, out.stderr[-2000:])  # nothing heavy imported to say it
+    if message is None:
+        assert last.startswith("EXIT 0") and "--eval-seed" in out.stdout
+    else:
+        assert last.startswith("EXIT 2"), last
+        err = out.stderr.strip().splitlines()
+        assert message in err[-1] and "Traceback" not in out.stderr, out.stderr  # one line, no traceback
+    assert not any(tmp_path.iterdir()) and not (ROOT / "runs" / "train" / "nothing").exists()
+
+
+def test_sigterm_checkpoints_a_real_run_and_resume_continues(tmp_path):
+    from vkgrl_newton.agents.checkpoint import load_checkpoint
+
+    run_dir = tmp_path / "sac"
+    cmd = [sys.executable, str(ROOT / "train" / "run.py"), "--method", "sac", "--run-dir", str(run_dir),
+           "--total-steps", "100000", "--checkpoint-every", "100000", "--eval-episodes", "0", *TINY]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:  # the run checkpoints once at its start; signal it once it is past that, in its loop
+        deadline = time.time() + 300
+        while not (run_dir / "curves.jsonl").exists():
+            assert proc.poll() is None and time.time() < deadline, proc.stdout.read() if proc.poll() else "timeout"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, out
+    assert "stopped by SIGTERM; checkpoint at" in out and "Traceback" not in out, out
+    ckpt = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    stopped_at = ckpt["counters"]["transitions"]
+    assert stopped_at >= 300  # one 150-step episode of 2 worlds had finished: what it learned is kept
+    assert int(out.split("checkpoint at ")[1].split()[0]) == stopped_at
+    resumed = subprocess.run([sys.executable, str(ROOT / "train" / "run.py"), "--run-dir", str(run_dir), "--resume",
+                              "--total-steps", str(stopped_at + 20), "--no-progress"], cwd=ROOT, capture_output=True,
+                             text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    assert f"resumed {run_dir} at {stopped_at} transitions" in resumed.stdout
+    assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["counters"]["transitions"] == stopped_at + 20
+
+
+def test_bench_refuses_an_existing_json_before_running(tmp_path):
+    existing = tmp_path / "mine.json"
+    existing.write_text("user data")
+    out = subprocess.run([sys.executable, "-m", "vkgrl_newton.kernels.bench", "--json", str(existing)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "exists; choose another path" in out.stderr.strip().splitlines()[-1]
+    assert existing.read_text() == "user data" and "kernel" not in out.stdout  # nothing was benchmarked
+
+
+def test_written_files_follow_the_umask_and_json_is_strict(tmp_path):
+    from vkgrl_newton._io import atomic_write_text, strict_json
+
+    old = os.umask(0o027)
+    try:
+        path = atomic_write_text(tmp_path / "a.json", strict_json({"x": math.nan, "y": [math.inf, 1.5], "z": 2}))
+    finally:
+        os.umask(old)
+    assert path.stat().st_mode & 0o777 == 0o640  # as open() would have made it, not mkstemp's 0600
+    assert json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}")) == {
+        "x": None, "y": [None, 1.5], "z": 2}
+
+
+def test_a_stopped_sweep_marks_its_trials_interrupted_and_reads_them(tmp_path):
+    from vkgrl_newton.sweep import trial_status, write_trial_state
+
+    run_dir = tmp_path / "t"
+    run_dir.mkdir()
+    write_trial_state(run_dir, state="interrupted", host="elsewhere", pid=1)
+    old = time.time() - 3600
+    assert trial_status({"run_dir": str(run_dir)})[0] == "interrupted"
+    (run_dir / "train.log").write_text("x")  # fresh activity from another host: it runs again
+    assert trial_status({"run_dir": str(run_dir)})[0] == "running"
+    os.utime(run_dir / "train.log", (old, old))
+    assert trial_status({"run_dir": str(run_dir)})[0] == "interrupted"
+    assert Path(run_dir / "trial.json").exists()
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "does not exist"),
+    (b"just text\n", "not a demonstration file (an .npz archive)"),
+    ("other_npz", "missing keys"),
+])
+def test_run_py_refuses_a_bad_demos_file_before_building_anything(content, message, tmp_path):
+    import numpy as np
+
+    demos = tmp_path / "demos.npz"
+    if content == "other_npz":
+        np.savez(demos, weights=np.zeros(3))
+    elif content is not None:
+        demos.write_bytes(content)
+    out = subprocess.run([sys.executable, str(ROOT / "train" / "run.py"), "--method", "kgrl", "--demos", str(demos),
+                          "--run-dir", str(tmp_path / "run"), "--device", "cpu"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    err = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and "--demos" in err[-1] and message in err[-1], out.stderr
+    assert "pickle" not in out.stderr and "Traceback" not in out.stderr and not (tmp_path / "run").exists()
