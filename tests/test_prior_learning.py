@@ -282,3 +282,34 @@ def test_empirical_tables_are_cached_apart_and_reloaded(tmp_path):
     again, _, rebuilt = load_or_fit_prior(path, 4, reference="empirical")
     assert not rebuilt and again.reference == "empirical" and torch.equal(again.mean, emp_t.mean)
     assert not torch.equal(gmr_t.mean, emp_t.mean)
+
+
+def test_prior_reg_adds_the_mean_penalty_and_pulls_toward_zero():
+    a = agent(prior_reg=2.5)
+    obs = torch.randn(64, 3, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        a.actor.head.bias[:2] = torch.tensor([0.8, -0.4])  # a mean away from 0
+    state = a.generator.get_state()
+    loss, _ = a.actor_loss(obs, torch.tensor(0.2))
+    a.generator.set_state(state)
+    plain = agent()  # the same networks without the penalty, on the same draw
+    plain.actor.load_state_dict(a.actor.state_dict())
+    plain.critic.load_state_dict(a.critic.state_dict())
+    plain.generator.set_state(state)
+    base, _ = plain.actor_loss(obs, torch.tensor(0.2))
+    mean = a.actor(obs)[0].detach().double()
+    want = 2.5 * torch.tanh(mean).square().sum(-1).mean()
+    assert float((loss - base).detach()) == pytest.approx(float(want), rel=1e-5)
+    # with a flat critic (its last layer zeroed) and alpha = 0 the penalty is the whole loss: its
+    # gradient on the mean's bias is 2.5 * d|tanh m|^2/dm = 5 tanh(m) (1 - tanh(m)^2), toward a = 0
+    with torch.no_grad():
+        a.critic.weights[-1].zero_()
+        a.critic.biases[-1].zero_()
+    a.actor.zero_grad()
+    a.actor_loss(obs, torch.tensor(0.0))[0].backward()
+    g = a.actor.head.bias.grad[:2].double()
+    t = torch.tanh(mean)
+    np.testing.assert_allclose(g.numpy(), (5.0 * t * (1 - t.square())).mean(0).numpy(), rtol=1e-4)
+    assert g[0] > 0 and g[1] < 0
+    with pytest.raises(ValueError, match="prior_reg=-1.0"):
+        make_sac_config("quick", prior_reg=-1.0)

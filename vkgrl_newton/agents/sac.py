@@ -329,9 +329,15 @@ class SAC:
         return loss, q, target
 
     def actor_loss(self, obs: torch.Tensor, alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        action, log_pi = self.actor.sample(obs, self.generator)
-        q = self.critic(obs, action, frozen=True).min(dim=0).values
-        return (alpha * log_pi - q).mean(), log_pi
+        """E[alpha log pi(a|s) - min_i Q_i(s, a)], plus cfg.prior_reg * E|tanh(mean)|^2 (toward a = 0)."""
+        mean, log_std = self.actor(obs)  # Actor.sample's draw, with the mean kept for the penalty
+        u = mean + log_std.exp() * torch.randn(mean.shape, generator=self.generator, device=mean.device)
+        log_pi = squashed_log_prob(u, mean, log_std)
+        q = self.critic(obs, torch.tanh(u), frozen=True).min(dim=0).values
+        loss = (alpha * log_pi - q).mean()
+        if self.cfg.prior_reg:
+            loss = loss + self.cfg.prior_reg * torch.tanh(mean).square().sum(-1).mean()
+        return loss, log_pi
 
     # --- training ------------------------------------------------------------------------------
     def update(self, num_gradient_steps: int | None = None) -> dict[str, float]:

@@ -67,6 +67,10 @@ class SACConfig:
     # trains from learning_starts on): before that the critic's action gradient has no signal and
     # only moves the policy away from where it started (a = 0, the prior, for KGRL). Off in the thesis.
     actor_after_reward: bool = False
+    # A penalty prior_reg * |tanh(mean)|^2 in the actor's loss: pulls the deterministic action
+    # toward a = 0 (the prior, for KGRL) where the critic's action gradient is weak; the weight is
+    # in units of Q (rewards of 1 per successful step). 0: none (thesis).
+    prior_reg: float = 0.0
     # LayerNorm after every hidden layer of the critics (RLPD, SERL): bounds Q's extrapolation to
     # actions the data does not cover. Off in the thesis.
     critic_layer_norm: bool = False
@@ -113,9 +117,12 @@ class SACConfig:
             raise ValueError(f"SACConfig.log_std_bound={self.log_std_bound!r}; allowed: {list(LOG_STD_BOUNDS)}")
         if not 0.0 <= self.prior_ratio < 1.0:
             raise ValueError(f"SACConfig.prior_ratio={self.prior_ratio!r} must be in [0, 1)")
-        for name in ("lr", "init_alpha", "obs_norm_eps", "weight_decay", "log_std_min", "log_std_max", "gamma", "tau"):
+        for name in ("lr", "init_alpha", "obs_norm_eps", "weight_decay", "log_std_min", "log_std_max", "gamma", "tau",
+                     "prior_reg", "prior_ratio"):
             if not math.isfinite(float(getattr(self, name))):
                 raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be finite")
+        if not self.prior_reg >= 0:
+            raise ValueError(f"SACConfig.prior_reg={self.prior_reg!r} must be >= 0")
         if self.weight_decay < 0:
             raise ValueError(f"SACConfig.weight_decay={self.weight_decay!r} must be >= 0")
         if self.buffer_size < self.batch_size:
