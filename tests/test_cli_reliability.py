@@ -144,3 +144,35 @@ def test_run_py_refuses_a_bad_demos_file_before_building_anything(content, messa
     err = out.stderr.strip().splitlines()
     assert out.returncode == 2 and "--demos" in err[-1] and message in err[-1], out.stderr
     assert "pickle" not in out.stderr and "Traceback" not in out.stderr and not (tmp_path / "run").exists()
+
+
+def test_sweep_refuses_bad_numbers_and_a_damaged_record(tmp_path, capsys):
+    from scripts import load_script
+
+    sweep_py = load_script("sweep")
+    grid = ["--tasks", "PegInsert", "--envs", "factory", "--action-dims", "4", "--methods", "sac", "--seeds", "0"]
+    for flag, value in (("--max-concurrent", "-1"), ("--cpus-per-trial", "-1"), ("--cpus-per-trial", "0"),
+                        ("--max-retries", "-2"), ("--gpus-per-trial", "nan")):
+        with pytest.raises(SystemExit) as exc:
+            sweep_py.main(["--out", str(tmp_path / "s"), *grid, flag, value])
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert exc.value.code == 2 and f"{flag} " in err, err
+        assert not (tmp_path / "s").exists()  # refused before sweep.json is written or Ray started
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "sweep.json").write_text('{"grid": ')
+    with pytest.raises(SystemExit):
+        sweep_py.main(["--out", str(tmp_path / "d"), "--status"])
+    assert "sweep.json is damaged" in capsys.readouterr().err
+
+
+def test_evaluate_refuses_a_task_other_than_the_checkpoints(tmp_path):
+    from vkgrl_newton.agents.checkpoint import save_checkpoint
+
+    ckpt = save_checkpoint(tmp_path / "last.pt", {"meta": {"task": "PegInsert", "env": "factory", "action_dim": 4,
+                                                           "method": "sac", "time_obs": True},
+                                                  "counters": {}, "agent": {}, "rng": {}})
+    out = subprocess.run([sys.executable, str(ROOT / "train" / "evaluate.py"), "--checkpoint", str(ckpt), "--task",
+                          "GearMesh", "--env", "forge", "--action-dim", "6", "--device", "cpu"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    err = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and "the checkpoint is a PegInsert factory 4D policy" in err[-1], out.stderr

@@ -85,6 +85,14 @@ def main(argv=None) -> int:
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--checkpoint: {e}")
         meta = payload["meta"]
+        words = argv if argv is not None else sys.argv[1:]
+        given = {a.dest for a in ap._actions for o in a.option_strings
+                 if any(w == o or w.startswith(o + "=") for w in words)}
+        for name in ("task", "env", "action_dim"):  # the checkpoint says what it is; a different ask is refused
+            if name in given and getattr(args, name) != meta[name]:
+                ap.error(f"--{name.replace('_', '-')} {getattr(args, name)}: the checkpoint is a {meta['task']} "
+                         f"{meta['env']} {meta['action_dim']}D policy; leave --task/--env/--action-dim out with "
+                         "--checkpoint")
         args.task, args.env, args.action_dim = meta["task"], meta["env"], meta["action_dim"]
         args.no_time_obs = not meta["time_obs"]
         args.policy = meta["method"]

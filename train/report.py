@@ -116,9 +116,10 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
                     "one cell holds runs that differ in their seed alone")
         else:
             identities[key] = (d, ident)
-        if any(r["seed"] == config["seed"] for r in cells[key]):
+        twin = next((r["run_dir"] for r in cells[key] if r["seed"] == config["seed"]), None)
+        if twin is not None:
             raise MixedCellError(f"configuration {'/'.join(map(str, key))}: two runs of seed {config['seed']} "
-                                 f"({d} and another)")
+                                 f"({twin} and {d}); keep one, or give them different --label")
         row = {"run_dir": str(d), "seed": config["seed"], "total_steps": config.get("total_steps")}
         for m in METRICS:
             v = metrics.get(m)

@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import re
 import os
 import sys
@@ -188,13 +189,24 @@ def main(argv: list[str] | None = None) -> int:
     own, run_args = split_argv(list(sys.argv[1:] if argv is None else argv))
     ap = build_parser()
     args = ap.parse_args(own)
+    for flag, value, low in (("--cpus-per-trial", args.cpus_per_trial, 0.0), ("--gpus-per-trial", args.gpus_per_trial, 0.0),
+                             ("--max-retries", args.max_retries, 0), ("--max-concurrent", args.max_concurrent, 1)):
+        if value is not None and not (value >= low and math.isfinite(value)):
+            ap.error(f"{flag} {value}: must be {'>' if flag == '--cpus-per-trial' else '>='} {low}")
+    if args.cpus_per_trial == 0:
+        ap.error("--cpus-per-trial 0: must be > 0 (a trial runs one training process)")
     for flag in FORBIDDEN_RUN_ARGS:
         if any(a == flag or a.startswith(flag + "=") for a in run_args):
             ap.error(f"{flag} after `--`: the sweep sets it per trial (grid axes: {list(AXES)})")
     record_path = args.out / "sweep.json"
     given_grid = args.grid is not None or any(getattr(args, a) is not None for a in AXES)
     if record_path.exists():
-        record = json.loads(record_path.read_text())
+        try:
+            record = json.loads(record_path.read_text())
+            if not all(k in record for k in ("grid", "run_args")):
+                raise ValueError(f"missing {[k for k in ('grid', 'run_args') if k not in record]}")
+        except (json.JSONDecodeError, ValueError, TypeError) as e:
+            ap.error(f"--out {args.out}: its sweep.json is damaged ({e}); restore it or choose another directory")
         if given_grid or run_args:
             grid = resolve_grid(args, ap) if given_grid else record["grid"]
             if grid != record["grid"] or (run_args and run_args != record["run_args"]):
