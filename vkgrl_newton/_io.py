@@ -108,8 +108,8 @@ def load_npz(path, what: str, required: tuple[str, ...]) -> dict:
     if not path.exists():
         raise FileNotFoundError(f"{what} file {path} does not exist")
     if not path.is_file() or not zipfile.is_zipfile(path):  # (numpy's own message would suggest pickle)
-        raise ValueError(f"{path}: not a {what} file (an .npz archive); this is "
-                         f"{'a directory' if path.is_dir() else 'some other file'}")
+        raise ValueError(f"{path}: not a readable {what} file (an .npz archive); this is "
+                         f"{'a directory' if path.is_dir() else 'another kind of file, or a damaged one'}")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
