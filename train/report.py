@@ -270,7 +270,9 @@ def prior_gain_rows(cells: dict, reps: int) -> list[dict]:
             "success": float(np.mean([r["success_rate"] for r in runs])),
             "prior_success": float(np.mean([r["paired"]["prior_success"] for r in runs])),
             "seed_gains": gains.tolist(),
-            "gain_over_seeds": paired_gain(gains, np.zeros_like(gains), reps=reps, seed=0),
+            # one seed has no spread to resample: its interval is left out (None), not a point
+            "gain_over_seeds": {**paired_gain(gains, np.zeros_like(gains), reps=reps, seed=0),
+                                **({"ci_low": None, "ci_high": None} if len(runs) < 2 else {})},
             "gain_pooled": paired_gain(np.concatenate([r["paired"]["policy"] for r in runs]),
                                        np.concatenate([r["paired"]["prior"] for r in runs]), reps=reps, seed=0),
             "training_early": float(np.nanmean(early)) if early else None,
@@ -283,6 +285,8 @@ def prior_gain_markdown(rows: list[dict]) -> str:
     def ci(g):
         if g["mean"] is None:
             return DASH
+        if g["ci_low"] is None:
+            return f"{g['mean']:+.3f} [one seed: no interval]"
         return f"{g['mean']:+.3f} [{g['ci_low']:+.3f}, {g['ci_high']:+.3f}]"
 
     def num(v):
