@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from vkgrl_newton.agents.sac import SAC, make_sac_config
+from vkgrl_newton.agents.sac import SAC, make_sac_config, squashed_log_prob
 from vkgrl_newton.results.paired import paired_gain, seed_evaluation, world_outcomes
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -132,7 +132,9 @@ def test_prior_anchor_takes_a_zero_where_the_critics_value_it_more():
 
 
 def test_prior_anchor_target_bootstraps_from_the_better_action():
-    """The critic's target with the anchor: r + gamma (max(Q'(s', a_pi), Q'(s', 0)) - alpha log pi(chosen))."""
+    """The critic's target with the anchor: r + gamma (max(Q'(s', a_pi), Q'(s', 0)) - alpha log pi(a_pi)),
+    the entropy term of the policy's own sample whichever action is taken (log pi(0) of a policy that
+    has moved away from 0 would be an unbounded bonus)."""
     a = agent(prior_anchor=True, gamma=0.9)
     centre = lambda o: torch.where(o[:, :1] > 0, 0.0, 0.9) * torch.ones(o.shape[0], 2)  # noqa: E731
     a.critic_target = QuadraticCritic(centre)
@@ -140,14 +142,15 @@ def test_prior_anchor_target_bootstraps_from_the_better_action():
     obs, next_obs = torch.randn(512, 3, generator=g), torch.randn(512, 3, generator=g)
     reward, term = torch.rand(512, generator=g), torch.zeros(512)
     state = a.generator.get_state()
-    _, _, target = a.critic_loss(obs, torch.zeros(512, 2), reward, next_obs, term, torch.tensor(0.0))
+    _, _, target = a.critic_loss(obs, torch.zeros(512, 2), reward, next_obs, term, torch.tensor(0.5))
     a.generator.set_state(state)  # replay the draw the target made
     mean, log_std = a.actor(next_obs)
     u = mean + log_std.exp() * torch.randn(mean.shape, generator=a.generator)
     c = centre(next_obs).double()
     q_pi = -(torch.tanh(u).double() - c).square().sum(-1)
     q_0 = -c.square().sum(-1)
-    want = (reward.double() + 0.9 * torch.maximum(q_pi, q_0)).detach()  # alpha = 0
+    log_pi = squashed_log_prob(u.double(), mean.double(), log_std.double())
+    want = (reward.double() + 0.9 * (torch.maximum(q_pi, q_0) - 0.5 * log_pi)).detach()
     np.testing.assert_allclose(target.double().numpy(), want.numpy(), rtol=1e-5, atol=1e-5)
     # states whose critic centre is at 0 take a = 0; those centred at 0.9 mostly the policy's sample
     assert (q_0 > q_pi)[next_obs[:, 0] > 0].all() and (q_0 < q_pi)[next_obs[:, 0] <= 0].any()

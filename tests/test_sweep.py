@@ -76,13 +76,13 @@ def resumed_at(run_dir: Path) -> int:
     return int(lines[-1].split(" at ")[-1].split()[0])
 
 
-def assert_finished(run_dir: Path, resumed: bool = False) -> dict:
+def assert_finished(run_dir: Path, resumed: bool = False, killed_at_least: int = 300) -> dict:
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["training"]["transitions"] == 900
     steps = [r["transitions"] for r in read_curves(run_dir)]  # a row per episode of the 2 worlds
     if resumed:  # the rows up to the checkpoint resumed from stay; episodes restart there (300 each)
         at = resumed_at(run_dir)
-        assert at >= 300, at  # the kill came after a checkpoint of >= 300 transitions
+        assert at >= killed_at_least, at  # the kill came after a checkpoint of that many transitions
         expected = [s for s in (300, 600, 900) if s <= at] + list(range(at + 300, 901, 300))
         assert steps == expected, (at, steps)
     else:
@@ -184,3 +184,31 @@ def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_p
     assert state(second)["attempts"] == 2 and state(second)["resumed"] is True
     assert_finished(second, resumed=True)
 
+
+
+def test_sigterm_to_the_driver_marks_trials_interrupted_and_a_restart_resumes_them(sweep_py, wp_cpu, tmp_path):
+    """SIGTERM (a scheduler's pre-emption) stops the driver like Ctrl-C, after Ray installed its own
+    handler: exit 143, the running trial is marked interrupted, and the same command resumes it."""
+    out = tmp_path / "sweep"
+    grid = [*GRID, "--action-dims", "4", "--seeds", "0", "--max-concurrent", "1"]
+    trial = out / "PegInsert_factory_4d_sac" / "seed0"
+    driver = start_driver(out, *grid)
+    try:
+        wait_for(lambda: state(trial).get("pid") and checkpointed_transitions(trial) >= 150, 300,
+                 "the trial to checkpoint")
+        driver.send_signal(signal.SIGTERM)
+        log, _ = driver.communicate(timeout=120)
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+    assert driver.returncode == 128 + signal.SIGTERM, log
+    assert "stopped by SIGTERM" in log and state(trial)["state"] in ("interrupted", "running"), log
+    from vkgrl_newton.sweep import _alive
+
+    wait_for(lambda: not _alive(state(trial)["pid"]), 60, "the trial's run.py to stop")
+    assert state(trial)["state"] == "interrupted"
+    again = start_driver(out, *grid)
+    log, _ = again.communicate(timeout=300)
+    assert again.returncode == 0, log
+    assert state(trial)["attempts"] == 2 and state(trial)["resumed"] is True
+    assert_finished(trial, resumed=True, killed_at_least=150)

@@ -185,6 +185,8 @@ def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatc
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["training"]["transitions"] == 40
     assert json.loads((run_dir / "metrics_at_16.json").read_text())["training"]["transitions"] == 16  # kept aside
+    assert json.loads((run_dir / "config_at_16.json").read_text())["total_steps"] == 16  # the earlier plan
+    assert json.loads((run_dir / "config.json").read_text())["total_steps"] == 40
 
     # a finished run resumed without a larger --total-steps says so and changes nothing
     before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} | {"ckpt": ckpt_path.read_bytes()}

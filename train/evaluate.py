@@ -134,7 +134,7 @@ def main(argv=None) -> int:
 
         prior = payload["meta"].get("prior", {}) if payload is not None else {}
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device,
-                                       geometry=args.geometry, reference=prior.get("reference", args.kmp_reference),
+                                       geometry=args.geometry, reference=prior.get("reference", "gmr") if prior else args.kmp_reference,
                                        **{k: prior[k] for k in ("lam", "beta", "l") if k in prior})
         action_path = KGRLActionPath(tables, env)
     if payload is not None:

@@ -256,7 +256,8 @@ def prior_gain_rows(cells: dict, reps: int) -> list[dict]:
         runs = [r for r in cells[key] if "paired" in r]
         if not runs:
             continue
-        gains = np.array([r["paired"]["gain"]["mean"] for r in runs], dtype=np.float64)
+        gains = np.array([math.nan if r["paired"]["gain"]["mean"] is None else r["paired"]["gain"]["mean"]
+                          for r in runs], dtype=np.float64)
         early, late = [], []
         for r in runs:
             curve = read_curves(Path(r["run_dir"]))
@@ -268,7 +269,8 @@ def prior_gain_rows(cells: dict, reps: int) -> list[dict]:
         rows.append({
             "task": key[0], "env": key[1], "action_dim": key[2], "method": key[3], "seeds": len(runs),
             "success": float(np.mean([r["success_rate"] for r in runs])),
-            "prior_success": float(np.mean([r["paired"]["prior_success"] for r in runs])),
+            "prior_success": float(np.nanmean([math.nan if r["paired"]["prior_success"] is None
+                                               else r["paired"]["prior_success"] for r in runs])),
             "seed_gains": gains.tolist(),
             # one seed has no spread to resample: its interval is left out (None), not a point
             "gain_over_seeds": {**paired_gain(gains, np.zeros_like(gains), reps=reps, seed=0),

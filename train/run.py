@@ -53,7 +53,7 @@ from vkgrl_newton.cache import check_run_files  # noqa: E402
 from vkgrl_newton.cli_types import add_verbose_flag, positive_int  # noqa: E402
 from vkgrl_newton.results.curves import CURVES_FILE, CurveWriter  # noqa: E402
 from vkgrl_newton.results.paired import EVAL_SEED, format_gain, paired_gain, seed_evaluation, world_outcomes  # noqa: E402
-from vkgrl_newton.signals import exit_code, stop_signals_as_interrupts  # noqa: E402
+from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, METHODS, TASKS, geometry_error,  # noqa: E402
                                 observation_dim)
 
@@ -211,7 +211,7 @@ def _explicit_args(argv) -> set[str]:
     for action in ap._actions:
         action.default = None
     ns = ap.parse_args(argv)
-    return {k for k, v in vars(ns).items() if v not in (None, False, [])}
+    return {k for k, v in vars(ns).items() if v is not None and v is not False and v != []}  # (0 is given)
 
 
 def main(argv=None) -> int:
@@ -244,7 +244,13 @@ def main(argv=None) -> int:
         except (FileNotFoundError, ValueError) as e:
             ap.error(f"--resume: {e}")
         done_at = int(payload["counters"].get("transitions", 0))
-        if (args.run_dir / "metrics.json").exists() and not ("total_steps" in given and args.total_steps > done_at):
+        metrics_file = args.run_dir / "metrics.json"
+        try:  # finished: its metrics.json is of the checkpoint's transitions (not of an earlier, shorter plan)
+            finished = metrics_file.exists() and int(
+                json.loads(metrics_file.read_text()).get("training", {}).get("transitions", -1)) == done_at
+        except (json.JSONDecodeError, ValueError, TypeError, AttributeError):
+            finished = False
+        if finished and not ("total_steps" in given and args.total_steps > done_at):
             # finished: nothing to continue and nothing rewritten (its metrics.json is what report.py reads)
             print(f"train/run.py: {args.run_dir} is a finished run ({done_at} transitions, "
                   f"{args.run_dir / 'metrics.json'}); nothing to resume. Train it further with --total-steps N "
@@ -255,7 +261,11 @@ def main(argv=None) -> int:
             if name not in given:
                 setattr(args, name, value)
         if not args.sac:
-            args.sac_config = SACConfig(**meta["sac"])
+            try:
+                args.sac_config = SACConfig(**meta["sac"])
+            except (TypeError, ValueError) as e:
+                ap.error(f"--resume: the checkpoint's SAC configuration is not valid today ({e}); give the fields "
+                         "again with --sac FIELD=VALUE")
     if geometry_error(args.task, args.geometry):
         ap.error(f"--{geometry_error(args.task, args.geometry)}")
     if args.geometry == "mesh" and uses_vision(args.method):
@@ -567,7 +577,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         checkpoint()
         bar.close()
         writer.close()
-        log(f"{e or 'interrupted'}; checkpoint at {counters['transitions']} transitions in {ckpt_path} "
+        log(f"{describe(e)}; checkpoint at {counters['transitions']} transitions in {ckpt_path} "
             "(--resume continues)")
         return exit_code(e)
     finally:
@@ -598,7 +608,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                                   counters["transitions"])
     except KeyboardInterrupt as e:  # the checkpoint holds the whole run: --resume evaluates it again
         writer.close()
-        log(f"{e or 'interrupted'} during the final evaluation; the trained checkpoint is {ckpt_path} "
+        log(f"{describe(e)} during the final evaluation; the trained checkpoint is {ckpt_path} "
             "(--resume evaluates)")
         return exit_code(e)
     writer.close()
@@ -607,10 +617,14 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     metrics_path = run_dir / "metrics.json"
     if metrics_path.exists():  # a finished run trained further: its earlier result stays beside the new one
         earlier = json.loads(metrics_path.read_text()).get("training", {}).get("transitions", "earlier")
-        aside = run_dir / f"metrics_at_{earlier}.json"
-        if not aside.exists():
-            metrics_path.rename(aside)
-            log(f"the earlier metrics.json -> {aside}")
+        for name in ("metrics", "config"):  # config.json: the plan (total_steps) it was run to
+            aside = run_dir / f"{name}_at_{earlier}.json"
+            if not aside.exists():
+                (run_dir / f"{name}.json").rename(aside)
+                log(f"the earlier {name}.json -> {aside}")
+    # the plan the run was finished to (a resume may have changed --total-steps or the evaluation)
+    atomic_write_text(run_dir / "config.json", strict_json({**meta, **plan(args), "device": args.device}, indent=2),
+                      overwrite=True)
     atomic_write_text(metrics_path, strict_json(result, indent=2), overwrite=True)  # the run's own file
     shown = {k: result[k] for k in ("success_rate", "mean_contact_force", "time_to_first_success_s",
                                     "mean_episode_reward") if k in result}

@@ -48,7 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
-from vkgrl_newton.signals import exit_code, stop_signals_as_interrupts  # noqa: E402
+from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, METHODS  # noqa: E402
 from vkgrl_newton.tasks import FAMILIES as ENVS  # noqa: E402
 from vkgrl_newton.tasks import TASKS as TASK_SPECS  # noqa: E402
@@ -235,8 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"train/sweep.py: {len(trials)} trials in {args.out}, {len(trials) - len(todo)} done, {len(todo)} to run")
     if not todo:
         return print_status(trials)
-    with stop_signals_as_interrupts():
-        return run_sweep(args, todo, trials, trial_args)
+    return run_sweep(args, todo, trials, trial_args)
 
 
 def run_sweep(args, todo: list[dict], trials: list[dict], trial_args: list[str]) -> int:
@@ -245,6 +244,13 @@ def run_sweep(args, todo: list[dict], trials: list[dict], trial_args: list[str])
     address = args.address or os.environ.get("RAY_ADDRESS")
     # a local Ray by default: no dashboard, the trials' output in their own logs, not the driver's
     ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    # after ray.init, which installs a SIGTERM handler of its own (sys.exit): ours replaces it while
+    # the sweep drives its trials, so SIGTERM / SIGHUP stop it like Ctrl-C (trials marked interrupted)
+    with stop_signals_as_interrupts():
+        return _drive(ray, args, todo, trials, trial_args)
+
+
+def _drive(ray, args, todo: list[dict], trials: list[dict], trial_args: list[str]) -> int:
     remote = ray.remote(run_trial).options(
         num_cpus=args.cpus_per_trial, num_gpus=args.gpus_per_trial, max_retries=args.max_retries,
         retry_exceptions=[TrialProcessDied])
@@ -272,7 +278,7 @@ def run_sweep(args, todo: list[dict], trials: list[dict], trial_args: list[str])
             bar.set_postfix(running=len(running), failed=len(failed), transitions=done_tr, refresh=True)
     except KeyboardInterrupt as e:  # Ctrl-C, SIGTERM or SIGHUP (vkgrl_newton/signals.py)
         bar.close()
-        tqdm.write(f"{e or 'interrupted'}: the running trials checkpoint at their next step and stop; "
+        tqdm.write(f"{describe(e)}: the running trials checkpoint at their next step and stop; "
                    "run the same command again to continue them")
         for ref, trial in running.items():
             write_trial_state(Path(trial["run_dir"]), state="interrupted")

@@ -14,7 +14,7 @@ import signal
 import threading
 from contextlib import contextmanager
 
-__all__ = ["StopSignal", "stop_signals_as_interrupts", "exit_code", "STOP_EXIT_CODES"]
+__all__ = ["StopSignal", "stop_signals_as_interrupts", "exit_code", "describe", "STOP_EXIT_CODES"]
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 STOP_EXIT_CODES = (130, 128 + signal.SIGTERM, 128 + signal.SIGHUP)  # what a stopped command exits with
@@ -28,7 +28,12 @@ class StopSignal(KeyboardInterrupt):
         self.signum = signum
 
 
+_received: list[int] = []  # the stop signals received in this process (a library may re-raise a plain
+# KeyboardInterrupt in place of ours, Ray's wait does: exit_code still knows which signal it was)
+
+
 def _raise(signum, frame):
+    _received.append(signum)
     raise StopSignal(signum)
 
 
@@ -43,10 +48,19 @@ def stop_signals_as_interrupts():
     try:
         yield
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        for s, handler in previous.items():  # None: a handler set from C, not restorable: the default
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 def exit_code(exc: BaseException) -> int:
-    """128 + the signal's number for a StopSignal, 130 for Ctrl-C."""
-    return 128 + exc.signum if isinstance(exc, StopSignal) else 130
+    """128 + the signal's number for a stop signal, 130 for Ctrl-C."""
+    if isinstance(exc, StopSignal):
+        return 128 + exc.signum
+    return 128 + _received[-1] if _received else 130
+
+
+def describe(exc: BaseException) -> str:
+    """'stopped by SIGTERM' (or SIGHUP) or 'interrupted' (Ctrl-C), for a log line."""
+    if isinstance(exc, StopSignal):
+        return str(exc)
+    return f"stopped by {signal.Signals(_received[-1]).name}" if _received else "interrupted"

@@ -316,10 +316,11 @@ class SAC:
                 zero = torch.zeros_like(u)
                 q = self.critic_target(torch.cat([next_obs, next_obs]), torch.cat([torch.tanh(u), zero]))
                 q_pi, q_0 = q.min(dim=0).values.chunk(2)
-                take_0 = q_0 > q_pi
-                next_q = torch.where(take_0, q_0, q_pi)
-                # log pi of the action taken: a = 0 is u = 0 under the same squashed Gaussian
-                next_log_pi = squashed_log_prob(torch.where(take_0.unsqueeze(-1), zero, u), mean, log_std)
+                next_q = torch.maximum(q_0, q_pi)
+                # the entropy term of the policy's own sample in both cases: log pi(0 | s') of a policy
+                # that has moved away from 0 with a small std is hugely negative, and would add an
+                # unbounded bonus to the target exactly where the prior's action is chosen
+                next_log_pi = squashed_log_prob(u, mean, log_std)
             else:
                 next_action, next_log_pi = self.actor.sample(next_obs, self.generator)
                 next_q = self.critic_target(next_obs, next_action).min(dim=0).values
