@@ -40,6 +40,8 @@ print("EXIT", code, "HEAVY", sorted(m for m in {heavy!r} if m in sys.modules))
     (["--sac", "buffer_size=8", "--sac", "batch_size=16"], "buffer_size=8 must be >= batch_size=16"),
     (["--sac", "prior_anchor=true", "--method", "sac"], "--sac prior_anchor: acts with or learns from the KMP prior"),
     (["--kmp-reference", "empirical", "--method", "sac"], "--kmp-reference is for the kgrl methods"),
+    (["--kgrl-reach-floor", "3", "--method", "sac"], "--kgrl-reach-floor is for the kgrl methods"),
+    (["--kgrl-reach-floor", "nan", "--method", "kgrl"], "--kgrl-reach-floor must be a number of mm in [0, 50]"),
     (["--eval-episodes", "-1"], "--eval-episodes -1: must be >= 0"),
     (["--label", "a b"], "--label 'a b': 1-40 characters"),
 ])

@@ -316,3 +316,34 @@ def test_prior_reg_adds_the_mean_penalty_and_pulls_toward_zero():
     assert g[0] > 0 and g[1] < 0
     with pytest.raises(ValueError, match="prior_reg=-1.0"):
         make_sac_config("quick", prior_reg=-1.0)
+
+
+def test_reach_floor_lifts_short_axes_by_brute_force_over_the_action_corners():
+    """Every corner of [-1, 1]^4 (the extremes of a linear map) moves x and y by at least the floor;
+    axes already past it, the other axes and the prior's mean (a = 0) are untouched."""
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import fit_prior
+    from vkgrl_newton.kmp.tables import null_space_reach, with_reach_floor
+    from vkgrl_newton.tasks import get_task
+
+    spec = get_task("PegInsert")
+    w = np.array([spec.w_pos] * 3 + [spec.w_rot] * 3)
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=2), 4)
+    floor = 2e-3
+    lifted = with_reach_floor(tables, floor, w)
+    corners = np.array(list(itertools.product((-1.0, 1.0), repeat=4)))  # (16, 4) in (x, y, z, yaw)
+    zeta = np.zeros((len(corners), 6))
+    zeta[:, [0, 1, 2, 5]] = corners * w[[0, 1, 2, 5]]
+
+    def brute_reach(gain):  # (S, 6): the largest |B[n] zeta| of an axis over the corners
+        return np.abs(np.einsum("sij,cj->sci", gain.numpy(), zeta)).max(1)
+
+    before, after = brute_reach(tables.gain), brute_reach(lifted.gain)
+    np.testing.assert_allclose(null_space_reach(tables.gain, w).numpy(), before, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(after[:, :2], np.maximum(before[:, :2], floor), rtol=1e-9, atol=1e-15)
+    assert (before[:, :2] < floor).any() and (before[:, :2] > floor).any()  # both cases are exercised
+    np.testing.assert_array_equal(after[:, 2:], before[:, 2:])
+    assert torch.equal(lifted.mean, tables.mean) and with_reach_floor(tables, 0.0, w) is tables
+    for bad in (-1e-3, math.nan, math.inf):
+        with pytest.raises(ValueError, match="reach floor"):
+            with_reach_floor(tables, bad, w)

@@ -136,7 +136,7 @@ def main(argv=None) -> int:
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device,
                                        geometry=args.geometry, reference=prior.get("reference", "gmr") if prior else args.kmp_reference,
                                        **{k: prior[k] for k in ("lam", "beta", "l") if k in prior})
-        action_path = KGRLActionPath(tables, env)
+        action_path = KGRLActionPath(tables, env, reach_floor=1e-3 * prior.get("reach_floor_mm", 0.0))
     if payload is not None:
         from vkgrl_newton.agents.sac import SAC, SACConfig
 

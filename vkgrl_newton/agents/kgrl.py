@@ -23,7 +23,7 @@ from ..kernels.kmp_horizon import kmp_horizon_pose, vec6f
 from ..kmp.demos import DemoSet
 from ..kmp.prior import KMP_BETA, KMP_L, KMP_LAMBDA, load_or_fit_prior
 from ..cache import file_sha256
-from ..kmp.tables import KMPTables
+from ..kmp.tables import KMPTables, with_reach_floor
 
 __all__ = ["KGRLActionPath", "load_or_make_prior", "demos_path_for", "prior_record"]
 
@@ -31,20 +31,23 @@ __all__ = ["KGRLActionPath", "load_or_make_prior", "demos_path_for", "prior_reco
 class KGRLActionPath:
     """Maps policy actions to absolute TCP pose commands through the KMP tables, batched over worlds."""
 
-    def __init__(self, tables: KMPTables, env):
+    def __init__(self, tables: KMPTables, env, reach_floor: float = 0.0):
         spec = env.task
         if tables.action_dim != env.num_actions:
             raise ValueError(f"KMP tables are {tables.action_dim}D, the env acts in {env.num_actions}D")
         if tables.n_steps != env.max_episode_length:
             raise ValueError(f"KMP tables cover {tables.n_steps} steps, an episode has {env.max_episode_length}: "
                              f"tables of another task or KMP dt")
-        self.tables = tables
         self.env = env
         self.action_dim = env.num_actions
         E, tdev = env.num_envs, env.tdev
         # zeta = scale * a, with a embedded in the 6D (x, y, z, rx, ry, rz) layout of the tables
         self.axes = [0, 1, 2, 5] if self.action_dim == 4 else [0, 1, 2, 3, 4, 5]
         scale = [spec.w_pos] * 3 + [spec.w_rot] * (self.action_dim - 3)
+        # reach_floor (m, x and y; 0: the thesis): kmp.tables.with_reach_floor, a deviation
+        self.reach_floor = float(reach_floor)
+        self.tables = with_reach_floor(tables, self.reach_floor, [spec.w_pos] * 3 + [spec.w_rot] * 3)
+        tables = self.tables
         self.scale = torch.tensor(scale, dtype=torch.float32, device=tdev)
         self.zeta = torch.zeros(E, 6, dtype=torch.float32, device=tdev)
         self.eta = torch.zeros(E, 6, dtype=torch.float32, device=tdev)
@@ -126,14 +129,17 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
     return tables, path
 
 
-def prior_record(tables: KMPTables, demos_path) -> dict:
+def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0) -> dict:
     """What a KGRL run records of its prior (checkpoint meta "prior"): the demonstration file and its
-    sha256, the KMP parameters and the number of demonstrations (`cache.check_unchanged` checks the file)."""
+    sha256, the KMP parameters and the number of demonstrations (`cache.check_unchanged` checks the file),
+    and the action path's reach floor (mm) where there is one."""
     record = {"demos": str(demos_path), "demos_sha256": file_sha256(demos_path), "lam": float(tables.lam),
               "beta": float(tables.beta), "l": float(tables.l),
               "num_demos": int(len(DemoSet.load(demos_path).demo_lengths))}
     if tables.reference != "gmr":  # absent for the thesis's GMR, so older runs' records still match
         record["reference"] = tables.reference
+    if reach_floor_mm > 0:  # likewise absent for the thesis's null space
+        record["reach_floor_mm"] = float(reach_floor_mm)
     return record
 
 

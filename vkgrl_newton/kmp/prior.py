@@ -141,7 +141,7 @@ def prior_fit(tables: KMPTables, demos: DemoSet) -> dict:
     import numpy as np
 
     from .gmr import gmr
-    from .tables import control_grid, demonstrations_on_grid
+    from .tables import control_grid, demonstrations_on_grid, null_space_reach
 
     spec = get_task(demos.task)
     on_grid = demonstrations_on_grid(demos, tables.dt)
@@ -153,7 +153,7 @@ def prior_fit(tables: KMPTables, demos: DemoSet) -> dict:
         ref_sd = np.sqrt(np.diagonal(sigma.numpy(), axis1=1, axis2=2))[:, :3]
     err = tables.mean.numpy()[:, :3] - mean
     w = np.array([spec.w_pos] * 3 + [spec.w_rot] * 3)
-    reach = (np.abs(tables.gain.numpy()) * w[None, None, :]).sum(-1)[:, :3]
+    reach = null_space_reach(tables.gain, w).numpy()[:, :3]
     ratio = ref_sd / np.maximum(sd, 1e-9)
     return {"mean_error": err, "ref_sd": ref_sd, "demo_sd": sd, "reach": reach,
             "max_abs_error_mm": (1e3 * np.abs(err).max(0)).tolist(), "sd_ratio_max": ratio.max(0).tolist(),
