@@ -39,7 +39,8 @@ import warp as wp
 
 from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS
 from .._io import atomic_write_text, strict_json
-from ..runtime import parse_cli
+from ..cli_types import device_name
+from ..runtime import device_error, parse_cli
 from .kmp_horizon import kmp_horizon_pose, mat66f, vec6f
 from .osc import osc_torques, osc_torques_torch
 
@@ -387,7 +388,7 @@ def _machine() -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--batch", type=int, nargs="+", default=[1, 128, 4096], help="numbers of environments")
-    p.add_argument("--devices", nargs="+", default=None, help="warp devices (default: cpu and cuda:0 if present)")
+    p.add_argument("--devices", nargs="+", default=None, type=device_name, help="warp devices (default: cpu and cuda:0 if present)")
     p.add_argument("--warmup", type=int, default=10)
     p.add_argument("--repeats", type=int, default=100)
     p.add_argument("--json", default=None,
@@ -396,6 +397,9 @@ def main(argv=None) -> int:
     p.add_argument("--only", nargs="+", default=None, help=f"case names, from {[c.name for c in CASES]}")
     p.add_argument("--torch-threads", type=int, default=1, help="torch CPU threads (0: torch's default)")
     args = parse_cli(p, argv)
+    for device in args.devices or ():
+        if (why := device_error(device, "--devices")) is not None:
+            p.error(why)
     if args.torch_threads < 0:
         p.error(f"--torch-threads {args.torch_threads}: must be >= 0 (0: torch's default)")
     if min(args.batch) < 1 or args.warmup < 0 or args.repeats < 1:

@@ -178,3 +178,28 @@ def test_evaluate_refuses_a_task_other_than_the_checkpoints(tmp_path):
                          capture_output=True, text=True, timeout=300)
     err = out.stderr.strip().splitlines()
     assert out.returncode == 2 and "the checkpoint is a PegInsert factory 4D policy" in err[-1], out.stderr
+
+
+DEVICE_CASES = [  # (command, its device flag): every CLI that takes a device
+    (["train/run.py", "--run-dir", "{tmp}/run"], "--device"),
+    (["train/evaluate.py", "--policy", "kmp_prior", "--json", "{tmp}/e.json"], "--device"),
+    (["train/collect_demos.py", "--out", "{tmp}/d.npz"], "--device"),
+    (["train/collect_images.py", "--out", "{tmp}/images"], "--device"),
+    (["-m", "vkgrl_newton.envs.throughput"], "--device"),
+    (["-m", "vkgrl_newton.agents.bench_sac"], "--device"),
+    (["-m", "vkgrl_newton.kernels.bench", "--json", "{tmp}/b.json"], "--devices"),
+]
+
+
+@pytest.mark.parametrize("argv, flag", DEVICE_CASES, ids=lambda v: v[1] if isinstance(v, list) else v)
+@pytest.mark.parametrize("device", ["gpu", "cuda:7"])
+def test_every_cli_refuses_a_device_it_cannot_use_in_one_line(argv, flag, device, tmp_path):
+    """A misspelt device is refused by argparse; a CUDA device this machine lacks names the ones it has.
+    (CI machines have no CUDA device with 8 or more GPUs: cuda:7 is absent everywhere we test.)"""
+    cmd = [sys.executable, *[a.format(tmp=tmp_path) for a in argv], flag, device]
+    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    err = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    expected = "is not a device; allowed: cpu, cuda, cuda:N" if device == "gpu" else f"{flag} cuda:7: Warp sees"
+    assert expected in err[-1] and "allowed" in err[-1], err[-1]
+    assert not any(tmp_path.iterdir())  # nothing written

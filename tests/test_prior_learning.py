@@ -347,3 +347,29 @@ def test_reach_floor_lifts_short_axes_by_brute_force_over_the_action_corners():
     for bad in (-1e-3, math.nan, math.inf):
         with pytest.raises(ValueError, match="reach floor"):
             with_reach_floor(tables, bad, w)
+
+
+def test_cached_evaluation_computes_once_per_key_and_restores_nan(tmp_path):
+    from vkgrl_newton.results.paired import cached_evaluation
+
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"success_rate": 0.25, "time_to_first_success_s": math.nan,
+                "per_episode": [{"world_success": [1.0, math.nan], "world_contact_force": [0.5, 2.0]}]}
+
+    key = {"task": "PegInsert", "eval_seed": 10_000}
+    first, reused = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
+    again, reused_again = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
+    assert (reused, reused_again, len(calls)) == (False, True, 1)
+    assert again["success_rate"] == 0.25 and math.isnan(again["time_to_first_success_s"])
+    assert again["per_episode"][0]["world_contact_force"] == [0.5, 2.0]
+    assert math.isnan(again["per_episode"][0]["world_success"][1])
+    (file,) = (tmp_path / "evaluations").glob("*.json")
+    json.loads(file.read_text(), parse_constant=lambda c: pytest.fail(f"bare {c} in the cache file"))
+    cached_evaluation(tmp_path, {**key, "eval_seed": 1}, compute, log=lambda m: None)  # another input: evaluated
+    assert len(calls) == 2
+    file.write_text("{ damaged")
+    _, reused = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
+    assert not reused and len(calls) == 3 and json.loads(file.read_text())["result"]["success_rate"] == 0.25

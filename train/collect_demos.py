@@ -19,7 +19,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton.cli_types import positive_int  # noqa: E402
+from vkgrl_newton.cli_types import positive_int, device_name  # noqa: E402
 
 from vkgrl_newton.envs.assembly_env import FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
 from vkgrl_newton.envs.demonstrations import record_demonstrations  # noqa: E402
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     ap.add_argument("--num-envs", type=positive_int, default=16)
     ap.add_argument("--max-episodes", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--device", default=None)
+    ap.add_argument("--device", default=None, type=device_name, help="cpu, cuda or cuda:N (default: cuda:0 when present)")
     ap.add_argument("--out", type=Path, required=True, help="output .npz (never overwritten)")
     args = parse_cli(ap, argv, device=True)
     if args.num_demos < 2:

@@ -26,7 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton.cli_types import positive_int  # noqa: E402
+from vkgrl_newton.cli_types import positive_int, device_name  # noqa: E402
 
 from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
 from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,  # noqa: E402
@@ -55,7 +55,7 @@ def main(argv=None) -> int:
                     help="seeds the evaluation episodes, as train/run.py's --eval-seed: two policies evaluated with one "
                          "eval seed (and the same task, env, action space and worlds) see identical initial states "
                          "(default %(default)s)")
-    ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    ap.add_argument("--device", default=None, type=device_name, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--eager-physics", action="store_true",
                     help="launch the physics kernels one by one instead of one captured graph per control step "
                          "(bitwise the same results, slower: the reference)")

@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import hashlib
 import json
 import math
 import re
@@ -50,9 +51,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
 from vkgrl_newton.agents.sac_config import SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.cache import check_run_files  # noqa: E402
-from vkgrl_newton.cli_types import add_verbose_flag, positive_int  # noqa: E402
+from vkgrl_newton.cli_types import add_verbose_flag, positive_int, device_name  # noqa: E402
 from vkgrl_newton.results.curves import CURVES_FILE, CurveWriter  # noqa: E402
-from vkgrl_newton.results.paired import EVAL_SEED, format_gain, paired_gain, seed_evaluation, world_outcomes  # noqa: E402
+from vkgrl_newton.results.paired import (EVAL_SEED, cached_evaluation, format_gain, paired_gain,  # noqa: E402
+                                         seed_evaluation, world_outcomes)
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, METHODS, TASKS, geometry_error,  # noqa: E402
                                 observation_dim)
@@ -94,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--sac", metavar="FIELD=VALUE", action="append", default=[],
                     help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256 "
                          "(kgrl methods default to warmup=policy, actor_init_std=0.1, log_std_max=-1.2)")
-    ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    ap.add_argument("--device", default=None, type=device_name, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES,
                     help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes with SDFs on CUDA; "
                          "the scripted demonstrations are recorded on it too)")
@@ -320,7 +322,7 @@ def main(argv=None) -> int:
     if reason is not None:
         print(f"train/run.py: {reason}", file=sys.stderr)
         return 2
-    from vkgrl_newton.runtime import configure_warp, default_device  # torch and Warp from here on
+    from vkgrl_newton.runtime import configure_warp, default_device, device_error  # torch and Warp from here on
 
     if args.demos is not None and not args.resume:  # a missing, damaged or foreign file stops here
         from vkgrl_newton.kmp.demos import DemoSet
@@ -333,6 +335,8 @@ def main(argv=None) -> int:
             ap.error(f"--demos {args.demos}: demonstrations of {demo_task}, not --task {args.task}")
     configure_warp(args.verbose)
     args.device = args.device or default_device()
+    if (why := device_error(args.device)) is not None:
+        ap.error(why)
     args.preset = args.preset or ("thesis" if args.device.startswith("cuda") else "quick")
     if args.sac_config is None:
         try:
@@ -664,9 +668,18 @@ def final_evaluation(args, env, agent, action_path, time_obs: bool) -> dict:
                        progress=not args.no_progress, desc="final evaluation")
     metrics["eval_seed"] = args.eval_seed
     if action_path is not None:
-        seed_evaluation(env, args.eval_seed)
-        prior = evaluate(env, KMPPriorPolicy(action_path), args.eval_episodes, progress=not args.no_progress,
-                         desc="the prior, same episodes")
+        def evaluate_prior() -> dict:
+            seed_evaluation(env, args.eval_seed)
+            return evaluate(env, KMPPriorPolicy(action_path), args.eval_episodes, progress=not args.no_progress,
+                            desc="the prior, same episodes")
+
+        # a = 0 on these episodes is the same for every training seed and variant of the configuration
+        key = {"what": "kgrl prior evaluation", "task": args.task, "env": args.env, "action_dim": args.action_dim,
+               "num_envs": env.num_envs, "device": str(env.device), "geometry": args.geometry,
+               "eager_physics": bool(args.eager_physics), "vision_latent_dim": env.cfg.vision_latent_dim,
+               "eval_seed": args.eval_seed, "eval_episodes": args.eval_episodes,
+               "prior_mean_sha256": hashlib.sha256(action_path.tables.mean.numpy().tobytes()).hexdigest()}
+        prior, _ = cached_evaluation(args.cache_dir, key, evaluate_prior, log=print)
         metrics["prior_eval"] = {k: v for k, v in prior.items() if k != "per_episode"}
         metrics["prior_eval"]["per_episode"] = [{k: e[k] for k in ("world_success", "world_contact_force")}
                                            for e in prior["per_episode"]]

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 
-__all__ = ["positive_int", "nonnegative_int", "positive_float"]
+__all__ = ["positive_int", "nonnegative_int", "positive_float", "device_name", "DEVICE_FORMS"]
+
+DEVICE_FORMS = "cpu, cuda, cuda:N"
+_DEVICE = re.compile(r"cpu|cuda(:[0-9]+)?")
 
 
 def _number(text: str, kind, ok, what: str):
@@ -28,6 +32,14 @@ def nonnegative_int(text: str) -> int:
 
 def positive_float(text: str) -> float:
     return _number(text, float, lambda v: math.isfinite(v) and v > 0, "a finite number > 0")
+
+
+def device_name(text: str) -> str:
+    """A device's spelling (cpu, cuda, cuda:N), checked before anything is imported; whether this
+    machine has it is `runtime.device_error`'s to say, once Warp is loaded."""
+    if not _DEVICE.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a device; allowed: {DEVICE_FORMS}")
+    return text
 
 
 def add_verbose_flag(parser) -> None:

@@ -12,7 +12,7 @@ import warp as wp
 
 from .cli_types import add_verbose_flag  # noqa: F401  (a name of this module too)
 
-__all__ = ["default_device", "torch_device", "configure_warp", "add_verbose_flag", "parse_cli"]
+__all__ = ["default_device", "torch_device", "configure_warp", "add_verbose_flag", "parse_cli", "device_error"]
 
 # what Warp's native init prints on a machine without a GPU; nothing a CPU run can act on
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
@@ -22,6 +22,18 @@ def default_device() -> str:
     """'cuda:0' when Warp sees a CUDA device, else 'cpu'. Warp decides, not torch: the physics
     runs in Warp, and the torch device follows from it (`torch_device`)."""
     return "cuda:0" if wp.is_cuda_available() else "cpu"
+
+
+def device_error(device: str, flag: str = "--device") -> str | None:
+    """Why `device` (cpu, cuda, cuda:N) cannot be used on this machine, naming the devices Warp
+    can use here, or None. Call it before building anything, after `configure_warp`."""
+    here = ["cpu"] + [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]
+    if device == "cpu" or device in here or (device == "cuda" and len(here) > 1):
+        return None
+    if not device.startswith("cuda"):
+        return f"{flag} {device!r} is not a device; allowed: cpu, cuda, cuda:N"
+    why = "Warp sees no CUDA device on this machine" if len(here) == 1 else f"Warp sees {len(here) - 1} CUDA device(s)"
+    return f"{flag} {device}: {why}; allowed here: {', '.join(here)}"
 
 
 def torch_device(warp_device) -> torch.device:
@@ -61,5 +73,7 @@ def parse_cli(parser, argv=None, device: bool = False):
     configure_warp(args.verbose)
     if device:
         args.device = args.device or default_device()
+        if (why := device_error(args.device)) is not None:
+            parser.error(why)
         print(f"{parser.prog}: device {args.device}", file=sys.stderr)
     return args

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from vkgrl_newton.agents.sac import SAC, make_sac_config
-from vkgrl_newton.runtime import parse_cli
+from vkgrl_newton.cli_types import device_name
+from vkgrl_newton.runtime import device_error, parse_cli
 
 
 def _sync(device: torch.device) -> None:
@@ -93,7 +94,7 @@ def make_sb3(args: argparse.Namespace, data: dict[str, np.ndarray]) -> Callable[
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", type=device_name, help="cpu, cuda or cuda:N (default: cpu)")
     p.add_argument("--steps", type=int, default=50, help="gradient steps per timed call")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--obs-dim", type=int, default=8)
@@ -106,6 +107,8 @@ def main(argv: list[str] | None = None) -> dict:
                         "barriers stalling whenever another process holds a core")
     p.add_argument("--json", type=Path, default=None)
     args = parse_cli(p, argv)
+    if (why := device_error(args.device)) is not None:
+        p.error(why)
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)

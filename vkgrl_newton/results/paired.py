@@ -9,15 +9,23 @@ bitwise the same initial states and target-frame noise, episode by episode and w
 `paired_gain(a, b)`: the mean of the per-episode differences a - b over the episodes both
 policies ran, with a percentile bootstrap interval that resamples episodes in pairs (the pairing
 removes the between-episode variance the two share: a start both solve or both miss adds nothing).
+
+`cached_evaluation(cache_dir, key, compute)`: an evaluation that only its inputs and the code decide
+(a KGRL run's prior, a = 0, on the episodes of an eval seed: the same for every training seed and
+variant of a configuration) is computed once and reused; the key holds every input and a digest of
+the package's sources, so a changed env, kernel or scene evaluates anew.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 
-__all__ = ["EVAL_SEED", "seed_evaluation", "paired_gain", "world_outcomes"]
+__all__ = ["EVAL_SEED", "seed_evaluation", "paired_gain", "world_outcomes", "cached_evaluation", "source_digest"]
 
 # The default evaluation seed of train/run.py and train/evaluate.py: one set of evaluation episodes
 # for every training seed of a configuration, apart from the training seeds' own draws (0, 1, ...).
@@ -73,3 +81,60 @@ def format_gain(name: str, gain: dict, digits: int = 3) -> str:
     f = f"{{:+.{digits}f}}"
     return (f"{name} {f.format(gain['mean'])} [{f.format(gain['ci_low'])}, {f.format(gain['ci_high'])}] "
             f"({gain['n_pairs']} paired episodes)")
+
+
+_SOURCE_DIGEST: str | None = None
+
+
+def source_digest() -> str:
+    """sha256 over the package's Python, kernel and USD scene sources (vkgrl_newton, its kernels and
+    assets_usd): what an evaluation's outcome depends on besides its inputs. Computed once per process."""
+    global _SOURCE_DIGEST
+    if _SOURCE_DIGEST is None:
+        import vkgrl_newton
+        import vkgrl_newton.assets_usd
+        import vkgrl_newton.kernels
+
+        h = hashlib.sha256()
+        for pkg in (vkgrl_newton, vkgrl_newton.kernels, vkgrl_newton.assets_usd):
+            root = Path(pkg.__file__).parent
+            for f in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".usda") and p.is_file()):
+                h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+        _SOURCE_DIGEST = h.hexdigest()
+    return _SOURCE_DIGEST
+
+
+def _nan_for_null(obj):
+    if obj is None:
+        return math.nan
+    if isinstance(obj, dict):
+        return {k: _nan_for_null(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_nan_for_null(v) for v in obj]
+    return obj
+
+
+def cached_evaluation(cache_dir, key: dict, compute, log=print, what: str = "the prior's evaluation") -> tuple[dict, bool]:
+    """(compute(), False) the first time for `key` (a JSON-able dict of every input), (the stored
+    result, True) after: the file `cache_dir/evaluations/<sha>.json` (strict JSON; its NaN, stored as
+    null, come back as NaN: no field of an `evaluate` result is None). Made under the entry's lock
+    (vkgrl_newton.cache): runs that start together evaluate once. A damaged file is evaluated anew."""
+    from .._io import atomic_write_text, strict_json
+    from ..cache import entry_lock
+
+    full = {**key, "source_digest": source_digest()}
+    digest = hashlib.sha256(json.dumps(full, sort_keys=True).encode()).hexdigest()
+    path = Path(cache_dir) / "evaluations" / f"{digest[:24]}.json"
+    with entry_lock(path, log=log, what=what):
+        if path.exists():
+            try:
+                stored = json.loads(path.read_text())
+                if stored.get("key") == full:
+                    log(f"{what}: reused {path} (same inputs and sources)")
+                    return _nan_for_null(stored["result"]), True
+            except (json.JSONDecodeError, KeyError, TypeError, AttributeError):
+                pass
+            log(f"{what}: {path} is damaged or of other inputs; evaluating anew")
+        result = compute()
+        atomic_write_text(path, strict_json({"key": full, "result": result}), overwrite=True)
+    return result, False
