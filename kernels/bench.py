@@ -41,6 +41,7 @@ from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS
 from .._io import atomic_write_text, strict_json
 from ..cli_types import device_name
 from ..runtime import device_error, parse_cli
+from ..signals import run_cli
 from .kmp_horizon import kmp_horizon_pose, mat66f, vec6f
 from .osc import osc_torques, osc_torques_torch
 
@@ -445,4 +446,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main, "bench", "nothing was written"))

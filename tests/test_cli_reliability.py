@@ -31,7 +31,7 @@ print("EXIT", code, "HEAVY", sorted(m for m in {heavy!r} if m in sys.modules))
 """
 
 
-@pytest.mark.parametrize("argv, message", [
+RUN_PY_CASES = [
     (["--help"], None),
     (["--num-envs", "0"], "--num-envs: must be an integer >= 1"),
     (["--method", "ppo2"], "invalid choice: 'ppo2'"),
@@ -42,9 +42,13 @@ print("EXIT", code, "HEAVY", sorted(m for m in {heavy!r} if m in sys.modules))
     (["--kmp-reference", "empirical", "--method", "sac"], "--kmp-reference is for the kgrl methods"),
     (["--kgrl-reach-floor", "3", "--method", "sac"], "--kgrl-reach-floor is for the kgrl methods"),
     (["--kgrl-reach-floor", "nan", "--method", "kgrl"], "--kgrl-reach-floor must be a number of mm in [0, 50]"),
+    (["--seed", "-1"], "--seed -1: must be in [0, 2**32)"),
     (["--eval-episodes", "-1"], "--eval-episodes -1: must be >= 0"),
     (["--label", "a b"], "--label 'a b': 1-40 characters"),
-])
+]
+
+
+@pytest.mark.parametrize("argv, message", RUN_PY_CASES)
 def test_run_py_argument_errors_come_before_any_heavy_import(argv, message, tmp_path):
     out = subprocess.run([sys.executable, "-c", PROBE.format(argv=argv, heavy=HEAVY)], cwd=ROOT, capture_output=True,
                          text=True, timeout=120)
@@ -57,6 +61,19 @@ def test_run_py_argument_errors_come_before_any_heavy_import(argv, message, tmp_
         err = out.stderr.strip().splitlines()
         assert message in err[-1] and "Traceback" not in out.stderr, out.stderr  # one line, no traceback
     assert not any(tmp_path.iterdir()) and not (ROOT / "runs" / "train" / "nothing").exists()
+
+
+@pytest.mark.parametrize("resume", [False, True])
+def test_a_run_without_a_checkpoint_is_one_clear_message_with_or_without_resume(resume, tmp_path):
+    """config.json but no checkpoint (stopped before its first): not 'pass --resume' then 'no checkpoint'."""
+    (tmp_path / "config.json").write_text("{}")
+    argv = ["--run-dir", str(tmp_path)] + (["--resume"] if resume else [])
+    out = subprocess.run([sys.executable, "-c", PROBE.format(argv=argv, heavy=HEAVY)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.stdout.strip().splitlines()[-1] == "EXIT 2 HEAVY []", out.stdout + out.stderr[-2000:]
+    assert "stopped before its first checkpoint (no checkpoints/last.pt): nothing to resume" in \
+        out.stderr.strip().splitlines()[-1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
 
 
 def test_sigterm_checkpoints_a_real_run_and_resume_continues(tmp_path):
@@ -203,3 +220,104 @@ def test_every_cli_refuses_a_device_it_cannot_use_in_one_line(argv, flag, device
     expected = "is not a device; allowed: cpu, cuda, cuda:N" if device == "gpu" else f"{flag} cuda:7: Warp sees"
     assert expected in err[-1] and "allowed" in err[-1], err[-1]
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+def _wait_for(predicate, proc, limit_s: float, what: str) -> None:
+    """Poll until predicate() holds; the limit only bounds a failure (a cold kernel cache under load)."""
+    deadline = time.monotonic() + limit_s
+    while not predicate():
+        assert proc.poll() is None, f"exited {proc.returncode} before {what}: {proc.stderr.read()[-2000:]}"
+        assert time.monotonic() < deadline, f"no {what} within {limit_s} s"
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize("command", ["collect_demos", "collect_images"])
+def test_sigterm_stops_a_collection_in_one_line_and_leaves_nothing(command, tmp_path):
+    """SIGTERM once the command works on its output: exit 143, one line naming the signal, no
+    traceback, and no output (an unfinished image set is removed, it would only block a retry)."""
+    out = tmp_path / ("demos.npz" if command == "collect_demos" else "images")
+    argv = [sys.executable, f"train/{command}.py", "--device", "cpu", "--num-envs", "2", "--out", str(out)]
+    if command == "collect_images":
+        argv += ["--num-images", "100000", "--resolution", "32", "--no-progress"]
+    err_path = tmp_path / "stderr.txt"
+    with open(err_path, "w") as err_file:
+        proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err_file, text=True)
+        try:
+            with open(err_path) as reader:
+                proc.stderr = reader  # for _wait_for's message
+                if command == "collect_images":  # the writer has made the directory: a partial set exists
+                    _wait_for(lambda: out.exists() and any(out.iterdir()), proc, 1200, "image files")
+                else:  # parse_cli has said the device: the handlers are in place
+                    _wait_for(lambda: "device cpu" in err_path.read_text(), proc, 600, "start")
+                proc.send_signal(signal.SIGTERM)
+                proc.wait(timeout=600)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    err = err_path.read_text()
+    assert proc.returncode == 143 and "Traceback" not in err, err[-3000:]
+    assert err.strip().splitlines()[-1].startswith(f"train/{command}.py: stopped by SIGTERM; ")
+    assert not out.exists()
+
+
+def test_report_is_all_or_nothing(tmp_path, monkeypatch):
+    """A failure after some files are written leaves --out as it was (and no staging directory)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("report_cli", ROOT / "train" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    run = tmp_path / "runs" / "r0"
+    run.mkdir(parents=True)
+    monkeypatch.setattr(report, "find_runs", lambda paths: [run])
+    monkeypatch.setattr(report, "load_cells", lambda dirs: {("PegInsert", "factory", 4, "kgrl"): []})
+    monkeypatch.setattr(report, "load_thesis_tables", lambda: {})
+    written = []
+
+    def fake_files(run_dirs, cells, thesis, out, reps):
+        (out / "tables.md").write_text("half a report")
+        written.append(out)
+        raise RuntimeError("the figure failed")
+
+    monkeypatch.setattr(report, "_write_report_files", fake_files)
+    out = tmp_path / "report"
+    out.mkdir()
+    with pytest.raises(RuntimeError, match="the figure failed"):
+        report.write_report([tmp_path / "runs"], out)
+    assert written and not written[0].exists()  # the staging directory is gone
+    assert out.is_dir() and not any(out.iterdir()) and sorted(p.name for p in tmp_path.iterdir()) == ["report", "runs"]
+
+    def good_files(run_dirs, cells, thesis, out, reps):
+        (out / "tables.md").write_text("a report")
+        return {"runs": 1}
+
+    monkeypatch.setattr(report, "_write_report_files", good_files)
+    assert report.write_report([tmp_path / "runs"], out) == {"runs": 1}
+    assert (out / "tables.md").read_text() == "a report" and sorted(p.name for p in tmp_path.iterdir()) == ["report", "runs"]
+
+
+def test_stderr_without_drops_native_lines_and_passes_the_rest(capfd):
+    from vkgrl_newton.cli_types import stderr_without
+
+    with stderr_without("Token authentication is enabled"):
+        os.write(2, b"Token authentication is enabled for this Ray cluster. Set RAY_AUTH_MODE=disabled\n")
+        os.write(2, b"a real warning\n")
+        print("from python", file=sys.stderr)
+    err = capfd.readouterr().err
+    assert "Token authentication" not in err and "a real warning" in err and "from python" in err
+
+
+def test_docs_cli_table_names_every_tested_refusal():
+    """docs/cli.md is checked against the tests: every flag refused in RUN_PY_CASES, every CLI of
+    DEVICE_CASES and the stop behaviour tested above appear in it."""
+    doc = (ROOT / "docs" / "cli.md").read_text()
+    for argv, message in RUN_PY_CASES[1:]:
+        flag = argv[0] if argv[0] != "--sac" else f"--sac {argv[1]}"
+        assert flag.split("=")[0] in doc, f"docs/cli.md does not name the refusal of {argv}"
+    for argv, _ in DEVICE_CASES:
+        name = argv[0].removeprefix("train/") if argv[0] != "-m" else argv[1].rsplit(".", 1)[-1]
+        assert name in doc, f"docs/cli.md does not name {name}'s device refusal"
+    for phrase in ("is not a device; allowed: cpu, cuda, cuda:N", "Warp sees no CUDA device on this machine",
+                   "nothing to resume", "stopped by SIGTERM; nothing was written", "the unfinished image set is removed",
+                   "all or nothing", "not a readable demonstration file (an .npz archive)"):
+        assert phrase in doc, phrase

@@ -15,16 +15,13 @@ import argparse
 import sys
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton.cli_types import positive_int, device_name  # noqa: E402
-
-from vkgrl_newton.envs.assembly_env import FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
-from vkgrl_newton.envs.demonstrations import record_demonstrations  # noqa: E402
+# light modules only until the arguments are checked (see train/evaluate.py)
+from vkgrl_newton.cli_types import device_name, positive_int  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
-from vkgrl_newton.tasks import TASKS  # noqa: E402
+from vkgrl_newton.signals import run_cli  # noqa: E402
+from vkgrl_newton.tasks import FAMILIES, TASKS  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -43,6 +40,12 @@ def main(argv=None) -> int:
     if args.out.exists():
         ap.error(f"--out {args.out} exists; demonstrations are never overwritten")
 
+    import torch
+
+    from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
+    from vkgrl_newton.envs.demonstrations import record_demonstrations
+
+    torch.set_num_threads(1)
     env = AssemblyEnv(EnvConfig(task=args.task, family=args.env, action_dim=6, num_envs=args.num_envs,
                                 device=args.device, seed=args.seed))
     demo_set, episodes = record_demonstrations(env, args.num_demos, seed=args.seed, max_episodes=args.max_episodes)
@@ -56,5 +59,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    torch.set_num_threads(1)
-    sys.exit(main())
+    sys.exit(run_cli(main, "train/collect_demos.py"))

@@ -18,6 +18,7 @@ written into. `train/run.py --method vision_kgrl` collects its own set when none
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from vkgrl_newton.cli_types import positive_int, device_name  # noqa: E402
 
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
+from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 from vkgrl_newton.sim.camera import CAMERA_SETS  # noqa: E402
 from vkgrl_newton.vision.collect import CollectConfig, collect_images  # noqa: E402
@@ -78,9 +80,18 @@ def main(argv=None) -> int:
         cfg = dataclasses.replace(base, **changes)
     except ValueError as e:
         ap.error(str(e))
-    collect_images(cfg, args.out, progress=not args.no_progress)
+    fresh = not args.out.exists()  # (else empty: checked above)
+    try:
+        collect_images(cfg, args.out, progress=not args.no_progress)
+    except KeyboardInterrupt:  # an unfinished set (no meta.json) would only block the next try
+        if fresh:
+            shutil.rmtree(args.out, ignore_errors=True)
+        else:  # the empty directory the user gave stays
+            for path in args.out.iterdir():
+                shutil.rmtree(path) if path.is_dir() else path.unlink()
+        raise
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main, "train/collect_images.py", "the unfinished image set was removed; nothing was written"))

@@ -22,21 +22,17 @@ import argparse
 import sys
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton.cli_types import positive_int, device_name  # noqa: E402
-
+# light modules only up to the argument checks (no torch, Warp or Newton): --help and argument errors
+# answer at once; the heavy modules load in main() once the arguments are checked
 from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
-from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,  # noqa: E402
-                                            ZeroPolicy, evaluate, write_video)
-from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES, AssemblyEnv, EnvConfig  # noqa: E402
 from vkgrl_newton.cache import check_run_files  # noqa: E402
+from vkgrl_newton.cli_types import device_name, positive_int  # noqa: E402
 from vkgrl_newton.results.paired import EVAL_SEED, seed_evaluation  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
-from vkgrl_newton.sim.scene import GEOMETRIES, SOLVERS, SimConfig, geometry_error  # noqa: E402
-from vkgrl_newton.tasks import TASKS  # noqa: E402
+from vkgrl_newton.signals import run_cli  # noqa: E402
+from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, GEOMETRIES, SOLVERS, TASKS, geometry_error  # noqa: E402
 
 POLICIES = ("scripted", "random", "zero", "kmp_prior")
 
@@ -107,6 +103,15 @@ def main(argv=None) -> int:
     if args.geometry is None:
         args.geometry = "primitives"
 
+    import torch
+
+    from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,
+                                                ZeroPolicy, evaluate, write_video)
+    from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
+    from vkgrl_newton.sim.scene import SimConfig
+
+    torch.set_num_threads(1)
+
     vision = payload["meta"].get("vision") if payload is not None else None
     encoder = None
     if vision is not None:  # a vision_* run: the same frozen encoder it trained with
@@ -172,5 +177,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    torch.set_num_threads(1)
-    sys.exit(main())
+    sys.exit(run_cli(main, "train/evaluate.py"))

@@ -43,6 +43,7 @@ from vkgrl_newton.kmp import (  # noqa: E402
     synthetic_demos,
 )
 from vkgrl_newton.kmp.prior import format_prior_fit, prior_fit  # noqa: E402
+from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.kmp.tables import control_grid  # noqa: E402
 from vkgrl_newton.tasks import TASKS, get_task  # noqa: E402
 
@@ -155,4 +156,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main, "train/plot_kmp.py", "nothing was written"))

@@ -40,7 +40,10 @@ import csv
 import io
 import json
 import math
+import os
+import shutil
 import sys
+import tempfile
 from collections import defaultdict
 from pathlib import Path
 
@@ -53,6 +56,7 @@ from vkgrl_newton.results.curves import read_curves  # noqa: E402
 from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E402
 from vkgrl_newton.results.plots import plot  # noqa: E402
 from vkgrl_newton.results.thesis import METRICS, THESIS_METHOD_NAMES, load_thesis_tables  # noqa: E402
+from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, TASKS  # noqa: E402
 
 TASK_ORDER = tuple(TASKS)  # PegInsert, GearMesh, NutThread: the thesis's row order
@@ -380,12 +384,35 @@ def stats_figure(stats: dict) -> bytes:
 
 # ----------------------------------------------------------------------------- main
 def write_report(paths: list[Path], out: Path, reps: int = 2000) -> dict:
+    """The report of the runs under `paths` in the directory `out` (new or empty), all or nothing:
+    it is written into a hidden staging directory beside `out`, renamed into place only when every
+    file is done, and removed if anything fails (`out` is then as it was)."""
     run_dirs = find_runs(paths)
     if not run_dirs:
         raise FileNotFoundError(f"no finished runs (config.json and metrics.json) under {', '.join(map(str, paths))}")
     cells = load_cells(run_dirs)
     thesis = load_thesis_tables()
-    out.mkdir(parents=True, exist_ok=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        summary = _write_report_files(run_dirs, cells, thesis, staging, reps)
+        if out.exists():
+            out.rmdir()  # empty (checked by main): only an empty directory is replaced
+        os.chmod(staging, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would have made
+        staging.rename(out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return summary
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _write_report_files(run_dirs, cells, thesis, out: Path, reps: int) -> dict:
     atomic_write_text(out / "tables.md", "# Results (train/report.py)\n\n" + markdown_tables(cells, thesis))
     atomic_write_text(out / "tables.tex", latex_tables(cells, thesis))
     rows = result_rows(cells, thesis)
@@ -435,4 +462,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main, "train/report.py", "nothing was written (--out is as it was)"))

@@ -61,6 +61,9 @@ from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, METHODS, TASK
 
 # what a run writes in its directory; one holding any of them holds a run (other files, such as a
 # sweep's train.log, may sit beside them)
+# a run stopped before its first checkpoint: nothing to resume, and its files are not overwritten
+_NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first checkpoint (no checkpoints/last.pt): "
+                  "nothing to resume; choose another directory, or delete this one to start it again")
 RUN_FILES = ("config.json", "checkpoints", "tb", "metrics.json", CURVES_FILE)
 VISION_LATENT_DIM = 16  # d_z of the thesis's VAE (5.6)
 # per preset: worlds, total transitions, checkpoint interval (transitions)
@@ -227,6 +230,9 @@ def main(argv=None) -> int:
     if args.resume:  # the run's identity comes from its checkpoint (a damaged one stops here)
         if args.run_dir is None:
             ap.error("--resume needs --run-dir (the run to continue)")
+        if not (args.run_dir / "checkpoints" / "last.pt").exists() and args.run_dir.is_dir() and any(
+                (args.run_dir / name).exists() for name in RUN_FILES):
+            ap.error(_NO_CHECKPOINT.format(run_dir=args.run_dir))
         from vkgrl_newton.agents.checkpoint import load_checkpoint
 
         try:
@@ -317,6 +323,11 @@ def main(argv=None) -> int:
         ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
     if args.run_dir is not None and args.run_dir.exists() and not args.run_dir.is_dir():
         ap.error(f"--run-dir {args.run_dir} is a file; give a directory (new, or a run's with --resume)")
+    if args.run_dir is not None and not args.resume and any((args.run_dir / n).exists() for n in RUN_FILES):
+        if not (args.run_dir / "checkpoints" / "last.pt").exists():  # (--resume could not continue it either)
+            ap.error(_NO_CHECKPOINT.format(run_dir=args.run_dir))
+        ap.error(f"--run-dir {args.run_dir} already holds a run; pass --resume to continue it or choose another "
+                 "directory")
 
     reason = unavailable(args)  # (imports the env's module: the heavy part starts here)
     if reason is not None:
@@ -354,7 +365,7 @@ def main(argv=None) -> int:
     run_dir = args.run_dir or Path("runs/train") / (f"{args.task}_{args.method}_{args.env}_{args.action_dim}d_"
                                                      f"seed{args.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
     ckpt_path = run_dir / "checkpoints" / "last.pt"
-    if not args.resume and any((run_dir / name).exists() for name in RUN_FILES):
+    if not args.resume and any((run_dir / name).exists() for name in RUN_FILES):  # a default name taken meanwhile
         ap.error(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another directory")
     args.latent_dim = VISION_LATENT_DIM if uses_vision(args.method) else 0
     if args.vae is not None:

@@ -48,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
+from vkgrl_newton.cli_types import stderr_without  # noqa: E402
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, METHODS  # noqa: E402
 from vkgrl_newton.tasks import FAMILIES as ENVS  # noqa: E402
@@ -243,7 +244,9 @@ def run_sweep(args, todo: list[dict], trials: list[dict], trial_args: list[str])
 
     address = args.address or os.environ.get("RAY_ADDRESS")
     # a local Ray by default: no dashboard, the trials' output in their own logs, not the driver's
-    ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    # Ray 2.5x announces its (kept) token authentication on every start: nothing to act on here
+    with stderr_without("Token authentication is enabled for this Ray cluster"):
+        ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
     # after ray.init, which installs a SIGTERM handler of its own (sys.exit): ours replaces it while
     # the sweep drives its trials, so SIGTERM / SIGHUP stop it like Ctrl-C (trials marked interrupted)
     with stop_signals_as_interrupts():

@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton.cli_types import nonnegative_int, positive_float, positive_int  # noqa: E402
 from vkgrl_newton.runtime import default_device, parse_cli  # noqa: E402
+from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 
 from vkgrl_newton.vision.dataset import ImageSet  # noqa: E402
 from vkgrl_newton.vision.train import CHECKPOINT, train_vae  # noqa: E402
@@ -179,11 +180,14 @@ def main(argv=None) -> int:
         train_vae(images.dir, out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                   kl_warmup_epochs=args.kl_warmup_epochs or 0, kl_weight=args.kl_weight,
                   device=device, config=config, resume=args.resume, progress=not args.no_progress, log=tqdm.write)
-    except KeyboardInterrupt:
-        return 130
+    except KeyboardInterrupt as e:  # the epochs finished so far are checkpointed in --out
+        print(f"train/train_vae.py: {describe(e)}; --resume --out {out} continues from its last checkpoint",
+              file=sys.stderr)
+        return exit_code(e)
     print(f"wrote {out}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with stop_signals_as_interrupts():  # SIGTERM / SIGHUP as Ctrl-C: the checkpoint path above
+        sys.exit(main())

@@ -67,6 +67,7 @@ import warp as wp
 from ._io import atomic_write, atomic_write_text
 from .cli_types import device_name
 from .runtime import parse_cli, torch_device
+from .signals import run_cli
 
 __all__ = ["CHECKS", "TASKS", "main", "check_graph_vs_eager", "check_parts_mesh", "check_kernel_bench",
            "check_sac_updates"]
@@ -519,4 +520,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main, "gpu_check", "the checks finished before the stop are in its JSON report (complete: false)"))

@@ -1,16 +1,12 @@
 """Where things run, chosen in one place: the default device, the torch device of a Warp
-device, and how loud Warp is. The sim, the env and every CLI use these."""
+device, and how loud Warp is. The sim, the env and every CLI use these. Warp and torch are
+imported where used: `parse_cli` answers --help and argument errors before loading them."""
 
 from __future__ import annotations
 
-import os
 import sys
-import tempfile
 
-import torch
-import warp as wp
-
-from .cli_types import add_verbose_flag  # noqa: F401  (a name of this module too)
+from .cli_types import add_verbose_flag, stderr_without  # noqa: F401  (add_verbose_flag: a name of this module too)
 
 __all__ = ["default_device", "torch_device", "configure_warp", "add_verbose_flag", "parse_cli", "device_error"]
 
@@ -21,12 +17,16 @@ _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
 def default_device() -> str:
     """'cuda:0' when Warp sees a CUDA device, else 'cpu'. Warp decides, not torch: the physics
     runs in Warp, and the torch device follows from it (`torch_device`)."""
+    import warp as wp
+
     return "cuda:0" if wp.is_cuda_available() else "cpu"
 
 
 def device_error(device: str, flag: str = "--device") -> str | None:
     """Why `device` (cpu, cuda, cuda:N) cannot be used on this machine, naming the devices Warp
     can use here, or None. Call it before building anything, after `configure_warp`."""
+    import warp as wp
+
     here = ["cpu"] + [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]
     if device == "cpu" or device in here or (device == "cuda" and len(here) > 1):
         return None
@@ -38,6 +38,8 @@ def device_error(device: str, flag: str = "--device") -> str | None:
 
 def torch_device(warp_device) -> torch.device:
     """The torch device sharing memory with a Warp device ('cuda:1' -> cuda:1, 'cpu' -> cpu)."""
+    import warp as wp
+
     return wp.device_to_torch(wp.get_device(warp_device))
 
 
@@ -45,24 +47,15 @@ def configure_warp(verbose: bool = False) -> None:
     """Warp's messages off unless `verbose`: no banner, no per-module 'load ... (cached)' line, no
     missing-driver warning on a CPU machine; warnings and errors still show. Call it before
     Warp is first used (the CLIs do, first thing); later calls only change the log level."""
+    import warp as wp
+
     wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
     if verbose or wp._src.context.runtime is not None:
         wp.init()
         return
-    # the native init writes the driver warning to fd 2 itself: catch it there, pass the rest on
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as caught:
-        os.dup2(caught.fileno(), 2)
-        try:
-            wp.init()
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            caught.seek(0)
-            rest = [ln for ln in caught.read().decode(errors="replace").splitlines(True) if _NO_DRIVER not in ln]
-            if rest:
-                sys.stderr.write("".join(rest))
+    # the native init writes the driver warning to fd 2 itself: drop it there, pass the rest on
+    with stderr_without(_NO_DRIVER):
+        wp.init()
 
 
 def parse_cli(parser, argv=None, device: bool = False):

@@ -11,10 +11,11 @@ its KeyboardInterrupt path (checkpoint, clean exit), instead of killing it mid-w
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from contextlib import contextmanager
 
-__all__ = ["StopSignal", "stop_signals_as_interrupts", "exit_code", "describe", "STOP_EXIT_CODES"]
+__all__ = ["StopSignal", "stop_signals_as_interrupts", "exit_code", "describe", "run_cli", "STOP_EXIT_CODES"]
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 STOP_EXIT_CODES = (130, 128 + signal.SIGTERM, 128 + signal.SIGHUP)  # what a stopped command exits with
@@ -64,3 +65,16 @@ def describe(exc: BaseException) -> str:
     if isinstance(exc, StopSignal):
         return str(exc)
     return f"stopped by {signal.Signals(_received[-1]).name}" if _received else "interrupted"
+
+
+def run_cli(main, prog: str, on_stop: str = "nothing was written") -> int:
+    """A command's main() with SIGTERM and SIGHUP handled like Ctrl-C: a stop prints one line,
+    `<prog>: interrupted; <on_stop>` (or 'stopped by SIGTERM'), no traceback, and the exit code is
+    130, 143 or 129. For the commands that write their result once, at the end (main() cleans up
+    anything partial before the interrupt propagates)."""
+    with stop_signals_as_interrupts():
+        try:
+            return main()
+        except KeyboardInterrupt as e:
+            print(f"{prog}: {describe(e)}; {on_stop}", file=sys.stderr)
+            return exit_code(e)

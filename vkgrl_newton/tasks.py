@@ -59,6 +59,7 @@ METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
 # The parts' collision geometry (sim/scene.py): the primitives everywhere; tooth / thread meshes
 # (SDFs on CUDA) for the tasks whose primitives are approximations.
 GEOMETRIES = ("primitives", "mesh")
+SOLVERS = ("mujoco", "steel")  # sim.scene.SimConfig.solver (here: the CLIs list them before importing the sim)
 MESH_TASKS = ("GearMesh", "NutThread")
 
 

@@ -33,6 +33,7 @@ import torch
 from vkgrl_newton.agents.sac import SAC, make_sac_config
 from vkgrl_newton.cli_types import device_name
 from vkgrl_newton.runtime import device_error, parse_cli
+from vkgrl_newton.signals import run_cli
 
 
 def _sync(device: torch.device) -> None:
@@ -168,4 +169,8 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    def _cli() -> int:  # main() returns the report (for callers); the command's status is 0
+        main()
+        return 0
+
+    raise SystemExit(run_cli(_cli, "bench_sac", "nothing was written"))

@@ -43,6 +43,7 @@ import warp as wp
 from .._io import atomic_write_text
 from ..cli_types import device_name
 from ..runtime import parse_cli
+from ..signals import run_cli
 from ..tasks import TASKS, get_task
 from ..sim.physics import PROFILE_STAGES
 from ..sim.scene import SimConfig
@@ -170,4 +171,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main, "throughput", "nothing was written"))

@@ -95,7 +95,10 @@ def plot(run_dirs: list[Path], out: Path, title: str | None = None) -> dict:
         ax.set_xlabel("env transitions")
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    if axes[0].get_legend_handles_labels()[0]:  # runs without curves yet: no empty-legend warning
+        axes[0].legend(fontsize=8)
+    else:
+        axes[0].text(0.5, 0.5, "no curve rows yet", ha="center", va="center", transform=axes[0].transAxes)
     fig.suptitle(title or " / ".join(sorted(titles)))
     fig.tight_layout()
     buf = io.BytesIO()

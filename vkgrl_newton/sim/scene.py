@@ -30,11 +30,10 @@ from ..assets_usd import dimensions as dims
 from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS  # noqa: F401  the env takes them from here
 from ..rotations import quat_conjugate, quat_mul, quat_rotate
 from ..runtime import default_device
-from ..tasks import DECIMATION, GEOMETRIES, MESH_TASKS, SIM_DT, geometry_error, get_task  # noqa: F401  (names of this module too)
+from ..tasks import DECIMATION, GEOMETRIES, MESH_TASKS, SIM_DT, SOLVERS, geometry_error, get_task  # noqa: F401  (names of this module too)
 
 __all__ = ["SimConfig", "Scene", "build_scene", "default_device", "SOLVERS"]
 
-SOLVERS = ("mujoco", "steel")
 # Collision geometry of the GearMesh / NutThread parts: the authored primitives (box teeth,
 # capsule threads; the default), or closed triangle meshes (solid box-tooth gears, ISO 68-1
 # threads; assets_usd/part_meshes.py) which on CUDA get signed distance fields (Newton builds
