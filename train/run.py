@@ -56,8 +56,8 @@ from vkgrl_newton.results.curves import CURVES_FILE, CurveWriter  # noqa: E402
 from vkgrl_newton.results.paired import (EVAL_SEED, cached_evaluation, format_gain, paired_gain,  # noqa: E402
                                          seed_evaluation, world_outcomes)
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
-from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, METHODS, TASKS, geometry_error,  # noqa: E402
-                                observation_dim)
+from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, METHODS, TASKS, VISION_LATENT_DIM,  # noqa: E402
+                                geometry_error, observation_dim)
 
 # what a run writes in its directory; one holding any of them holds a run (other files, such as a
 # sweep's train.log, may sit beside them)
@@ -65,7 +65,6 @@ from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, METHODS, TASK
 _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first checkpoint (no checkpoints/last.pt): "
                   "nothing to resume; choose another directory, or delete this one to start it again")
 RUN_FILES = ("config.json", "checkpoints", "tb", "metrics.json", CURVES_FILE)
-VISION_LATENT_DIM = 16  # d_z of the thesis's VAE (5.6)
 # per preset: worlds, total transitions, checkpoint interval (transitions)
 RUN_DEFAULTS = {
     "thesis": {"num_envs": 128, "total_steps": 1_000_000, "checkpoint_every": 50_000},

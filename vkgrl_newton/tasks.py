@@ -59,7 +59,8 @@ METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
 # The parts' collision geometry (sim/scene.py): the primitives everywhere; tooth / thread meshes
 # (SDFs on CUDA) for the tasks whose primitives are approximations.
 GEOMETRIES = ("primitives", "mesh")
-SOLVERS = ("mujoco", "steel")  # sim.scene.SimConfig.solver (here: the CLIs list them before importing the sim)
+SOLVERS = ("mujoco", "steel")
+VISION_LATENT_DIM = 16  # d_z of the thesis's VAE (5.6): the vision methods' latent slot  # sim.scene.SimConfig.solver (here: the CLIs list them before importing the sim)
 MESH_TASKS = ("GearMesh", "NutThread")
 
 

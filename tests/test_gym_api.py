@@ -1,0 +1,143 @@
+"""The gymnasium ids, the VectorEnv contract and the stable-baselines3 adapter (issue 29)."""
+
+from __future__ import annotations
+
+import re
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from scripts import ROOT
+
+import vkgrl_newton  # noqa: F401  (registers the ids)
+from vkgrl_newton.registration import VARIANTS, env_id, env_ids
+from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, TASKS, observation_dim
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+
+@pytest.fixture(scope="module")
+def peg4(wp_cpu):
+    """One 2-world PegInsert Factory 4D env, shared by the vector-env tests of this module."""
+    from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
+
+    return AssemblyEnv(EnvConfig(task="PegInsert", family="factory", action_dim=4, num_envs=2, device="cpu", seed=0))
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    from vkgrl_newton.kmp.demos import synthetic_demos
+
+    return synthetic_demos("PegInsert", 6, action_dim=6, seed=0).save(tmp_path_factory.mktemp("demos") / "d.npz")
+
+
+def test_every_configuration_has_one_id_registered_and_in_the_readme():
+    ids = env_ids()
+    assert len(ids) == len(TASKS) * len(FAMILIES) * len(ACTION_DIMS) * len(VARIANTS) == 48
+    readme = (ROOT / "README.md").read_text()
+    for name, kw in ids.items():
+        spec = gym.spec(name)
+        assert spec.vector_entry_point == "vkgrl_newton.envs.vector:AssemblyVectorEnv" and spec.kwargs == kw
+        assert env_id(**kw) == name and re.fullmatch(r"VKGRL/[A-Za-z]+-(Factory|Forge)-[46]D(-Vision)?(-KGRL)?-v0",
+                                                    name)
+        assert f"`{name}`" in readme, f"README's table of ids lacks {name}"
+    vkgrl_newton.registration.register_envs()  # again: idempotent
+    assert sum(k.startswith("VKGRL/") for k in gym.registry) == 48
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"num_envs": 0}, "num_envs=0 is not allowed; allowed: an integer >= 1"),
+    ({"tensors": "jax"}, "tensors='jax' is not allowed; allowed: ['numpy', 'torch']"),
+    ({"device": "gpu"}, "device 'gpu' is not a device"),
+    ({"device": "cuda:7"}, "device cuda:7: Warp sees"),
+    ({"geometry": "mesh"}, "geometry 'mesh' exists for ['GearMesh', 'NutThread'], not PegInsert"),
+    ({"vae": "x.pt"}, "vae is for the Vision ids"),
+])
+def test_bad_kwargs_are_one_line_errors_before_anything_is_built(kwargs, message, wp_cpu):
+    with pytest.raises(ValueError) as e:
+        gym.make_vec("VKGRL/PegInsert-Factory-4D-v0", **{"num_envs": 2, **kwargs})
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_bad_id_is_gymnasiums_error_naming_it():
+    with pytest.raises(gym.error.Error, match="PegInsert-Factory-5D"):
+        gym.make_vec("VKGRL/PegInsert-Factory-5D-v0", num_envs=2)
+
+
+def test_vector_contract_spaces_reset_seed_and_steps(peg4, demos, tmp_path):
+    from vkgrl_newton.envs.vector import AssemblyVectorEnv
+
+    envs = AssemblyVectorEnv("PegInsert", "factory", 4, kgrl=True, num_envs=2, device="cpu", cache_dir=tmp_path,
+                             demos=demos, env=peg4)
+    assert envs.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
+    assert envs.single_observation_space.shape == (observation_dim("factory", 0),)
+    assert envs.action_space.shape == (2, 4) and envs.action_space.dtype == np.float32
+    first, info = envs.reset(seed=7)
+    again, _ = envs.reset(seed=7)
+    other, _ = envs.reset(seed=8)
+    assert info == {} and first.dtype == np.float32 and envs.observation_space.contains(first)
+    np.testing.assert_array_equal(first, again)  # a seed gives the same initial states, world by world
+    assert not np.array_equal(first, other)
+    obs, reward, terminated, truncated, info = envs.step(envs.action_space.sample())
+    assert obs.shape == (2, 8) and reward.shape == (2,) and reward.dtype == np.float32
+    assert terminated.dtype == truncated.dtype == np.bool_ and not terminated.any() and not truncated.any()
+    with pytest.raises(ValueError, match=r"actions must have shape \(2, 4\)"):
+        envs.step(np.zeros((2, 6), np.float32))
+    with pytest.raises(ValueError, match="a list of seeds is not supported"):
+        envs.reset(seed=[1, 2])
+
+
+def test_time_out_gives_the_pre_reset_observation_as_final_obs(peg4, demos, tmp_path):
+    """The ended episode's last observation, captured independently just before the env resets the
+    worlds, is info['final_obs']; the returned observation is the new episode's first (time 0)."""
+    from vkgrl_newton.envs.vector import AssemblyVectorEnv
+
+    envs = AssemblyVectorEnv("PegInsert", "factory", 4, kgrl=True, num_envs=2, device="cpu", cache_dir=tmp_path,
+                             demos=demos, env=peg4, tensors="torch")
+    captured = []
+    original = peg4._reset_worlds
+
+    def capture(mask):
+        captured.append(peg4.get_observations()["policy"].clone())
+        return original(mask)
+
+    envs.reset(seed=1)
+    peg4._reset_worlds = capture
+    try:
+        for step in range(peg4.max_episode_length):
+            obs, reward, terminated, truncated, info = envs.step(torch.zeros(2, 4))
+            if truncated.any():
+                break
+    finally:
+        del peg4._reset_worlds
+    assert step == peg4.max_episode_length - 1 and truncated.all() and isinstance(obs, torch.Tensor)
+    assert info["_final_obs"].all() and info["_final_info"].all()
+    torch.testing.assert_close(info["final_obs"], captured[-1], rtol=0, atol=0)
+    assert torch.equal(info["final_obs"][:, 0], torch.ones(2)) and torch.equal(obs[:, 0], torch.zeros(2))
+    assert info["final_info"]["physics_reset"].dtype == torch.bool and not info["final_info"]["physics_reset"].any()
+    # the prior (a = 0) either seated the peg or not; success is the env's own per-world record
+    assert torch.equal(info["final_info"]["success"], peg4.last_episode_success_any)
+
+
+def test_stable_baselines3_sac_trains_through_the_adapter_and_reloads(peg4, demos, tmp_path):
+    sb3 = pytest.importorskip("stable_baselines3")
+    from vkgrl_newton.envs.sb3 import SB3VecEnv
+    from vkgrl_newton.envs.vector import AssemblyVectorEnv
+
+    venv = AssemblyVectorEnv("PegInsert", "factory", 4, kgrl=True, num_envs=2, device="cpu", cache_dir=tmp_path,
+                             demos=demos, env=peg4)
+    env = SB3VecEnv(venv)
+    env.seed(3)
+    model = sb3.SAC("MlpPolicy", env, learning_starts=64, batch_size=32, buffer_size=1000, train_freq=1,
+                    gradient_steps=1, policy_kwargs={"net_arch": [32, 32]}, seed=0, device="cpu")
+    model.learn(total_timesteps=320)  # 160 env steps x 2 worlds: crosses one time-out
+    assert model.num_timesteps >= 320 and model.replay_buffer.size() >= 150
+    ended = model.replay_buffer.timeouts[: model.replay_buffer.size()].any(axis=1)
+    assert ended.sum() == 1  # the time-out step: stored as truncated (SB3 bootstraps it)
+    model.save(tmp_path / "sac.zip")
+    loaded = sb3.SAC.load(tmp_path / "sac.zip", device="cpu")
+    obs = env.reset()
+    action, _ = loaded.predict(obs, deterministic=True)
+    assert action.shape == (2, 4) and np.all(np.abs(action) <= 1)
+    np.testing.assert_array_equal(action, model.predict(obs, deterministic=True)[0])
