@@ -141,3 +141,34 @@ def test_stable_baselines3_sac_trains_through_the_adapter_and_reloads(peg4, demo
     action, _ = loaded.predict(obs, deterministic=True)
     assert action.shape == (2, 4) and np.all(np.abs(action) <= 1)
     np.testing.assert_array_equal(action, model.predict(obs, deterministic=True)[0])
+
+
+def test_rsl_rl_ppo_runs_in_the_prior_null_space_and_its_checkpoint_reloads(peg4, demos, tmp_path):
+    """rsl-rl's OnPolicyRunner with Factory's PPO settings (agents/ppo.py) on the KGRL env: two
+    iterations of 16 steps x 2 worlds, saved, loaded into a fresh runner: the same actions."""
+    from rsl_rl.runners import OnPolicyRunner
+
+    from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
+    from vkgrl_newton.agents.ppo import FACTORY_PPO, KGRLVecEnv, ppo_train_cfg
+
+    cfg = ppo_train_cfg("PegInsert", "factory", 2, num_steps_per_env=16)
+    assert cfg["algorithm"]["num_mini_batches"] == 1 and cfg["algorithm"]["gamma"] == 0.995
+    assert ppo_train_cfg("NutThread", "forge", 128)["num_steps_per_env"] == 256
+    assert ppo_train_cfg("PegInsert", "factory", 128)["algorithm"]["num_mini_batches"] == 32  # 512 each
+    assert FACTORY_PPO["num_steps_per_env"] == 128  # the template is not changed by a call
+    with pytest.raises(ValueError, match="PPO setting 'algorithm.gama' unknown|PPO setting 'gama' unknown"):
+        ppo_train_cfg("PegInsert", "factory", 2, **{"algorithm.gama": 0.9})
+    tables, _ = load_or_make_prior("PegInsert", 4, tmp_path, demos=demos, device="cpu", log=lambda m: None)
+    env = KGRLVecEnv(peg4, KGRLActionPath(tables, peg4))
+    env.reset()
+    runner = OnPolicyRunner(env, cfg, log_dir=str(tmp_path / "ppo"), device="cpu")
+    runner.learn(num_learning_iterations=2)
+    saved = sorted((tmp_path / "ppo").glob("model_*.pt"))
+    assert saved and (tmp_path / "ppo").glob("events.out.tfevents.*")
+    obs = env.get_observations()
+    act = runner.get_inference_policy(device="cpu")(obs)
+    assert act.shape == (2, 4) and torch.isfinite(act).all()
+    fresh = OnPolicyRunner(env, ppo_train_cfg("PegInsert", "factory", 2, num_steps_per_env=16), log_dir=None,
+                           device="cpu")
+    fresh.load(str(saved[-1]))
+    torch.testing.assert_close(fresh.get_inference_policy(device="cpu")(obs), act, rtol=0, atol=0)
