@@ -321,3 +321,12 @@ def test_docs_cli_table_names_every_tested_refusal():
                    "nothing to resume", "stopped by SIGTERM; nothing was written", "the unfinished image set is removed",
                    "all or nothing", "not a readable demonstration file (an .npz archive)"):
         assert phrase in doc, phrase
+
+
+def test_collect_images_refuses_a_resolution_no_vae_accepts(tmp_path):
+    """Checked at collection time, not after hours of rendering when train_vae.py refuses it."""
+    out = subprocess.run([sys.executable, "train/collect_images.py", "--resolution", "100", "--out", str(tmp_path / "i")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "--resolution: invalid choice: 100 (choose from 32, 64, 128, 256, 512)" in out.stderr.strip().splitlines()[-1]
+    assert not any(tmp_path.iterdir())

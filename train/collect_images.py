@@ -33,6 +33,7 @@ from vkgrl_newton.tasks import TASKS  # noqa: E402
 from vkgrl_newton.sim.camera import CAMERA_SETS  # noqa: E402
 from vkgrl_newton.vision.collect import CollectConfig, collect_images  # noqa: E402
 from vkgrl_newton.vision.pipeline import VISION_PRESETS  # noqa: E402
+from vkgrl_newton.vision.vae import VAE_RESOLUTIONS  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -49,8 +50,9 @@ def main(argv=None) -> int:
     ap.add_argument("--samples-per-pixel", type=positive_int, default=None, help="> 1: multisample anti-aliasing")
     ap.add_argument("--num-images", type=positive_int, default=None)
     ap.add_argument("--out", type=Path, required=True, help="new directory (never written into if not empty)")
-    ap.add_argument("--resolution", type=positive_int, default=None,
-                    help="square image side in pixels (the thesis: 256; quick: 64)")
+    ap.add_argument("--resolution", type=int, choices=VAE_RESOLUTIONS, default=None, metavar="R",
+                    help="square image side in pixels, a power of two a VAE accepts: 32, 64, 128, 256, 512 "
+                         "(the thesis: 256; quick: 64)")
     ap.add_argument("--num-envs", type=positive_int, default=d.num_envs)
     ap.add_argument("--env", default=d.family, choices=FAMILIES)
     ap.add_argument("--action-dim", type=int, default=d.action_dim, choices=ACTION_DIMS)

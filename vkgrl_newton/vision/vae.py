@@ -66,6 +66,7 @@ VAE_KIND = "denoising_vae"
 VAE_FORMAT = 1
 NUM_LAYERS = 5  # conv layers of the encoder and transposed conv layers of the decoder (5.6.1)
 _RESOLUTIONS = tuple(2**k for k in range(5, 10))  # 32 .. 512: R / 2^5 >= 1
+VAE_RESOLUTIONS = _RESOLUTIONS  # public: the image sizes a VAE (and so an image set for one) can have
 
 
 # ----------------------------------------------------------------------------- config
