@@ -330,3 +330,47 @@ def test_collect_images_refuses_a_resolution_no_vae_accepts(tmp_path):
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "--resolution: invalid choice: 100 (choose from 32, 64, 128, 256, 512)" in out.stderr.strip().splitlines()[-1]
     assert not any(tmp_path.iterdir())
+
+
+LIGHT_PROBE = """
+import sys, runpy
+sys.argv = [{script!r}, *{argv!r}]
+try:
+    runpy.run_path({script!r}, run_name="__main__")
+except SystemExit as e:
+    code = e.code
+print("EXIT", code, "HEAVY", sorted(m for m in {heavy!r} if m in sys.modules))
+"""
+
+
+@pytest.mark.parametrize("script, argv, message", [
+    ("train/evaluate.py", ["--help"], None),
+    ("train/evaluate.py", ["--episodes", "0"], "--episodes: must be an integer >= 1"),
+    ("train/evaluate.py", ["--device", "gpu"], "'gpu' is not a device"),
+    ("train/collect_demos.py", ["--help"], None),
+    ("train/collect_demos.py", ["--num-envs", "0", "--out", "x.npz"], "--num-envs: must be an integer >= 1"),
+    ("train/train_vae.py", ["--help"], None),
+    ("train/train_vae.py", ["--images", "x", "--epochs", "0"], "--epochs: must be an integer >= 1"),
+    ("train/train_vae.py", ["--images", "x", "--channels", "8,8"], "--channels: must be 5 comma-separated"),
+])
+def test_other_clis_answer_help_and_argument_errors_before_any_heavy_import(script, argv, message):
+    out = subprocess.run([sys.executable, "-c", LIGHT_PROBE.format(script=script, argv=argv, heavy=HEAVY)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    last = out.stdout.strip().splitlines()[-1]
+    assert last.endswith("HEAVY []"), (last, out.stderr[-2000:])
+    if message is None:
+        assert last.startswith("EXIT 0") and "usage:" in out.stdout
+    else:
+        assert last.startswith("EXIT 2") and message in out.stderr.strip().splitlines()[-1], out.stderr[-2000:]
+
+
+def test_train_vae_cli_names_the_vae_defaults_it_shows_without_importing_them():
+    import importlib.util
+
+    from vkgrl_newton.vision.train import CHECKPOINT
+    from vkgrl_newton.vision.vae import VAEConfig
+
+    spec = importlib.util.spec_from_file_location("train_vae_cli", ROOT / "train" / "train_vae.py")
+    cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cli)
+    assert cli.DEFAULT_CHANNELS == VAEConfig().channels and cli.CHECKPOINT == CHECKPOINT

@@ -30,18 +30,16 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-from tqdm import tqdm
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton.cli_types import nonnegative_int, positive_float, positive_int  # noqa: E402
-from vkgrl_newton.runtime import default_device, parse_cli  # noqa: E402
+from vkgrl_newton.runtime import default_device, parse_cli  # noqa: E402  (light: Warp loads inside)
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 
-from vkgrl_newton.vision.dataset import ImageSet  # noqa: E402
-from vkgrl_newton.vision.train import CHECKPOINT, train_vae  # noqa: E402
-from vkgrl_newton.vision.vae import VAEConfig, load_vae  # noqa: E402
+
+# VAEConfig().channels, named here so that --help needs no torch (tests/test_cli_reliability.py checks it)
+DEFAULT_CHANNELS = (32, 64, 128, 256, 256)
+CHECKPOINT = Path("checkpoints") / "last.pt"  # vision.train.CHECKPOINT (checked by the same test)
 
 DEFAULTS = {"epochs": 400, "batch_size": 128, "lr": 1e-3, "seed": 0, "kl_weight": 1.0,
             "group_norm": True}  # thesis Table 5.5, eq. 4.48, 5.6.1
@@ -62,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--lr", type=positive_float, default=None, help="Adam learning rate (default 1e-3, thesis)")
     ap.add_argument("--seed", type=nonnegative_int, default=None, help="default 0")
     ap.add_argument("--channels", type=_channels, default=None, metavar="C1,C2,C3,C4,C5",
-                    help=f"encoder widths, multiples of 8 (default {','.join(map(str, VAEConfig().channels))})")
+                    help=f"encoder widths, multiples of 8 (default {','.join(map(str, DEFAULT_CHANNELS))})")
     ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--kl-warmup-epochs", type=nonnegative_int, default=None,
                     help="epochs over which the KL weight rises from 0 to --kl-weight (default 0, the thesis)")
@@ -90,6 +88,8 @@ def _channels(text: str) -> tuple[int, ...]:
 
 
 def _device(ap: argparse.ArgumentParser, text: str | None) -> str:
+    import torch
+
     if text is None:
         return default_device()
     try:
@@ -106,6 +106,14 @@ def _device(ap: argparse.ArgumentParser, text: str | None) -> str:
 def main(argv=None) -> int:
     ap = build_parser()
     args = parse_cli(ap, argv)
+    # the heavy modules, once the arguments parse (--help and argparse errors answer without them)
+    import torch
+    from tqdm import tqdm
+
+    from vkgrl_newton.vision.dataset import ImageSet
+    from vkgrl_newton.vision.train import train_vae
+    from vkgrl_newton.vision.vae import VAEConfig, load_vae
+
     if len(args.images) > 1 and args.probe_only is None:
         ap.error(f"--images: {len(args.images)} image sets given; a VAE trains on one (several only with --probe-only)")
     try:
