@@ -207,3 +207,15 @@ def test_report_refuses_bad_reps_before_writing(report_py, runs, tmp_path, capsy
     with pytest.raises(SystemExit) as exc:
         report_py.main([str(runs), "--out", str(out), "--reps", "-5"])
     assert exc.value.code == 2 and "--reps -5" in capsys.readouterr().err and not out.exists()
+
+
+def test_a_sac_field_a_run_predates_counts_at_its_default(report_py):
+    """A run written before a SACConfig field existed shares a cell with one that records its default
+    (as run.py --resume reads it), not with one that sets another value."""
+    base = {"task": "PegInsert", "method": "kgrl", "env": "factory", "action_dim": 4, "seed": 0, "num_envs": 16,
+            "sac": {"batch_size": 256}}
+    newer = {**base, "seed": 1, "sac": {"batch_size": 256, "prior_reg": 0.0}}
+    other = {**base, "seed": 2, "sac": {"batch_size": 256, "prior_reg": 1.0}}
+    assert report_py.identity(base) == report_py.identity(newer)
+    assert report_py.identity(base)["sac"]["prior_reg"] == 0.0 and report_py.identity(base)["sac"]["batch_size"] == 256
+    assert report_py.identity(other) != report_py.identity(base)

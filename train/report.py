@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -52,6 +53,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton._io import atomic_write, atomic_write_text, strict_json  # noqa: E402
+from vkgrl_newton.agents.sac_config import SACConfig  # noqa: E402
 from vkgrl_newton.results.curves import read_curves  # noqa: E402
 from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E402
 from vkgrl_newton.results.plots import plot  # noqa: E402
@@ -98,7 +100,19 @@ def cell_key(config: dict) -> tuple[str, str, int, str]:
 
 
 def identity(config: dict) -> dict:
-    return {k: v for k, v in config.items() if k not in NOT_IDENTITY}
+    """What must agree between the runs of a cell. A SAC field a run's config.json predates counts at
+    its default (as run.py's --resume reads such a checkpoint), so older runs and newer ones still
+    share a cell when nothing but the field's existence differs."""
+    ident = {k: v for k, v in config.items() if k not in NOT_IDENTITY}
+    if isinstance(ident.get("sac"), dict):
+        defaults = {f.name: f.default for f in dataclasses.fields(SACConfig)
+                    if f.default is not dataclasses.MISSING}
+        ident["sac"] = {**{k: _plain(v) for k, v in defaults.items() if k not in ident["sac"]}, **ident["sac"]}
+    return ident
+
+
+def _plain(value):
+    return list(value) if isinstance(value, tuple) else value  # as JSON holds it
 
 
 def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
