@@ -219,3 +219,11 @@ def test_a_sac_field_a_run_predates_counts_at_its_default(report_py):
     assert report_py.identity(base) == report_py.identity(newer)
     assert report_py.identity(base)["sac"]["prior_reg"] == 0.0 and report_py.identity(base)["sac"]["batch_size"] == 256
     assert report_py.identity(other) != report_py.identity(base)
+
+
+def test_curves_draw_a_labelled_variant_as_its_own_line():
+    from vkgrl_newton.results.plots import group_label
+
+    base = {"method": "kgrl", "time_obs": True}
+    assert group_label(base) == "kgrl" and group_label({**base, "label": "reach3"}) == "kgrl+reach3"
+    assert group_label({**base, "label": "reach3", "time_obs": False}) == "kgrl+reach3 (no time obs)"

@@ -52,7 +52,9 @@ def read_run(run_dir: Path) -> tuple[dict, dict[str, tuple[np.ndarray, np.ndarra
 
 
 def group_label(config: dict) -> str:
-    label = config["method"]
+    """The line a run belongs to: its method, `<method>+<label>` for a labelled variant (run.py
+    --label, as report.py's tables name it), and whether its policy saw time."""
+    label = config["method"] + (f"+{config['label']}" if config.get("label") else "")
     return label if config.get("time_obs", True) else label + " (no time obs)"
 
 
