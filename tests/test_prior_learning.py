@@ -339,6 +339,9 @@ def test_reach_floor_lifts_short_axes_by_brute_force_over_the_action_corners():
         return np.abs(np.einsum("sij,cj->sci", gain.numpy(), zeta)).max(1)
 
     before, after = brute_reach(tables.gain), brute_reach(lifted.gain)
+    # float64 throughout (tables, brute force and floor): each reach is a sum of 4-6 products, so the two
+    # orders of summation differ by ~6 ulp (~1e-15 relative); rtol 1e-12 / 1e-9 leave 3-6 orders of
+    # margin on either CPU, atol 1e-15 m covers the rows whose reach is ~0 (rx, ry in 4D)
     np.testing.assert_allclose(null_space_reach(tables.gain, w).numpy(), before, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(after[:, :2], np.maximum(before[:, :2], floor), rtol=1e-9, atol=1e-15)
     assert (before[:, :2] < floor).any() and (before[:, :2] > floor).any()  # both cases are exercised

@@ -52,7 +52,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton._io import atomic_write, atomic_write_text, strict_json  # noqa: E402
+from vkgrl_newton._io import atomic_write, atomic_write_text, current_umask, strict_json  # noqa: E402
 from vkgrl_newton.agents.sac_config import SACConfig  # noqa: E402
 from vkgrl_newton.results.curves import read_curves  # noqa: E402
 from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E402
@@ -412,18 +412,12 @@ def write_report(paths: list[Path], out: Path, reps: int = 2000) -> dict:
         summary = _write_report_files(run_dirs, cells, thesis, staging, reps)
         if out.exists():
             out.rmdir()  # empty (checked by main): only an empty directory is replaced
-        os.chmod(staging, 0o777 & ~_umask())  # mkdtemp's 0700 -> what mkdir would have made
+        os.chmod(staging, 0o777 & ~current_umask())  # mkdtemp's 0700 -> what mkdir would have made
         staging.rename(out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return summary
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _write_report_files(run_dirs, cells, thesis, out: Path, reps: int) -> dict:

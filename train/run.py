@@ -226,12 +226,15 @@ def main(argv=None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
     args.sac_config, payload = None, None
+    if args.run_dir is not None and args.run_dir.is_dir() and any((args.run_dir / n).exists() for n in RUN_FILES):
+        if not (args.run_dir / "checkpoints" / "last.pt").exists():  # with or without --resume: one message
+            ap.error(_NO_CHECKPOINT.format(run_dir=args.run_dir))
+        if not args.resume:
+            ap.error(f"--run-dir {args.run_dir} already holds a run; pass --resume to continue it or choose another "
+                     "directory")
     if args.resume:  # the run's identity comes from its checkpoint (a damaged one stops here)
         if args.run_dir is None:
             ap.error("--resume needs --run-dir (the run to continue)")
-        if not (args.run_dir / "checkpoints" / "last.pt").exists() and args.run_dir.is_dir() and any(
-                (args.run_dir / name).exists() for name in RUN_FILES):
-            ap.error(_NO_CHECKPOINT.format(run_dir=args.run_dir))
         from vkgrl_newton.agents.checkpoint import load_checkpoint
 
         try:
@@ -322,11 +325,6 @@ def main(argv=None) -> int:
         ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
     if args.run_dir is not None and args.run_dir.exists() and not args.run_dir.is_dir():
         ap.error(f"--run-dir {args.run_dir} is a file; give a directory (new, or a run's with --resume)")
-    if args.run_dir is not None and not args.resume and any((args.run_dir / n).exists() for n in RUN_FILES):
-        if not (args.run_dir / "checkpoints" / "last.pt").exists():  # (--resume could not continue it either)
-            ap.error(_NO_CHECKPOINT.format(run_dir=args.run_dir))
-        ap.error(f"--run-dir {args.run_dir} already holds a run; pass --resume to continue it or choose another "
-                 "directory")
 
     reason = unavailable(args)  # (imports the env's module: the heavy part starts here)
     if reason is not None:

@@ -39,7 +39,6 @@ from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts
 
 # VAEConfig().channels, named here so that --help needs no torch (tests/test_cli_reliability.py checks it)
 DEFAULT_CHANNELS = (32, 64, 128, 256, 256)
-CHECKPOINT = Path("checkpoints") / "last.pt"  # vision.train.CHECKPOINT (checked by the same test)
 
 DEFAULTS = {"epochs": 400, "batch_size": 128, "lr": 1e-3, "seed": 0, "kl_weight": 1.0,
             "group_norm": True}  # thesis Table 5.5, eq. 4.48, 5.6.1
@@ -111,7 +110,7 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     from vkgrl_newton.vision.dataset import ImageSet
-    from vkgrl_newton.vision.train import train_vae
+    from vkgrl_newton.vision.train import CHECKPOINT, train_vae
     from vkgrl_newton.vision.vae import VAEConfig, load_vae
 
     if len(args.images) > 1 and args.probe_only is None:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_write", "atomic_savez", "atomic_write_text", "strict_json", "load_npz", "NPZ_READ_ERRORS",
+__all__ = ["atomic_write", "current_umask", "atomic_savez", "atomic_write_text", "strict_json", "load_npz", "NPZ_READ_ERRORS",
            "CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "check_meta"]
 
 CHECKPOINT_FORMAT = 1
@@ -43,7 +43,7 @@ def atomic_write(path, overwrite: bool, write, suffix: str = ".tmp") -> Path:
         raise FileExistsError(f"{path} exists and is not overwritten; choose another path")
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=suffix)
     try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; a written file follows the umask like any other
+        os.fchmod(fd, 0o666 & ~current_umask())  # mkstemp makes 0600; a written file follows the umask like any other
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
@@ -61,7 +61,7 @@ def atomic_write(path, overwrite: bool, write, suffix: str = ".tmp") -> Path:
     return path
 
 
-def _umask() -> int:
+def current_umask() -> int:
     """The process's umask, read without changing it (Linux: /proc; elsewhere set and restored)."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from ..tasks import ACTION_DIMS, FAMILIES, TASKS, VISION_LATENT_DIM, geometry_error, observation_dim
@@ -74,13 +75,11 @@ class AssemblyVectorEnv(VectorEnv):
                  vision: bool = False, num_envs: int = 16, device: str | None = None, seed: int = 0,
                  cache_dir: str | Path = "runs/cache", tensors: str = "numpy", geometry: str = "primitives",
                  vae: str | Path | None = None, demos: str | Path | None = None, env=None):
-        check_vector_kwargs(task, family, action_dim, num_envs, tensors, geometry)
+        check_vector_kwargs(task, family, action_dim, num_envs, tensors, geometry)  # before anything is built
         if demos is not None and not kgrl:
             raise ValueError("demos is for the KGRL ids (their prior's demonstrations)")
         if vae is not None and not vision:
             raise ValueError("vae is for the Vision ids (their frozen encoder)")
-        import torch
-
         from ..runtime import configure_warp, default_device, device_error
 
         configure_warp()
@@ -117,7 +116,6 @@ class AssemblyVectorEnv(VectorEnv):
                                            log=_quiet)
             self.action_path = KGRLActionPath(tables, env)
         self._step = self.action_path.step if self.action_path is not None else env.step
-        self._torch = torch
         self.tensors = tensors
         self.num_envs = env.num_envs
         obs_dim = observation_dim(family, latent_dim)
@@ -125,8 +123,6 @@ class AssemblyVectorEnv(VectorEnv):
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
-        self.spec_kwargs = {"task": task, "family": family, "action_dim": action_dim, "kgrl": kgrl, "vision": vision}
-        self.max_episode_steps = env.max_episode_length
 
     # -- the gymnasium contract ---------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -141,7 +137,6 @@ class AssemblyVectorEnv(VectorEnv):
         return self._out(obs), {}
 
     def step(self, actions):
-        torch = self._torch
         a = torch.as_tensor(actions, dtype=torch.float32, device=self.env.tdev)
         if a.shape != (self.num_envs, self.single_action_space.shape[0]):
             raise ValueError(f"actions must have shape {(self.num_envs, self.single_action_space.shape[0])}, "

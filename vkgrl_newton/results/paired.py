@@ -114,6 +114,15 @@ def _nan_for_null(obj):
     return obj
 
 
+def _stored_result(path: Path, key: dict) -> dict | None:
+    """The result stored in `path` for exactly `key`, or None (damaged, or written for other inputs)."""
+    try:
+        stored = json.loads(path.read_text())
+        return _nan_for_null(stored["result"]) if stored.get("key") == key else None
+    except (json.JSONDecodeError, KeyError, TypeError, AttributeError):
+        return None
+
+
 def cached_evaluation(cache_dir, key: dict, compute, log=print, what: str = "the prior's evaluation") -> tuple[dict, bool]:
     """(compute(), False) the first time for `key` (a JSON-able dict of every input), (the stored
     result, True) after: the file `cache_dir/evaluations/<sha>.json` (strict JSON; its NaN, stored as
@@ -127,13 +136,10 @@ def cached_evaluation(cache_dir, key: dict, compute, log=print, what: str = "the
     path = Path(cache_dir) / "evaluations" / f"{digest[:24]}.json"
     with entry_lock(path, log=log, what=what):
         if path.exists():
-            try:
-                stored = json.loads(path.read_text())
-                if stored.get("key") == full:
-                    log(f"{what}: reused {path} (same inputs and sources)")
-                    return _nan_for_null(stored["result"]), True
-            except (json.JSONDecodeError, KeyError, TypeError, AttributeError):
-                pass
+            stored = _stored_result(path, full)
+            if stored is not None:
+                log(f"{what}: reused {path} (same inputs and sources)")
+                return stored, True
             log(f"{what}: {path} is damaged or of other inputs; evaluating anew")
         result = compute()
         atomic_write_text(path, strict_json({"key": full, "result": result}), overwrite=True)
