@@ -163,6 +163,9 @@ def test_rsl_rl_ppo_runs_in_the_prior_null_space_and_its_checkpoint_reloads(peg4
     env.reset()
     runner = OnPolicyRunner(env, cfg, log_dir=str(tmp_path / "ppo"), device="cpu")
     runner.learn(num_learning_iterations=2)
+    # the runner steps under torch.inference_mode: the env's state must stay writable outside it
+    env.reset()
+    env.step(torch.zeros(2, 4))
     saved = sorted((tmp_path / "ppo").glob("model_*.pt"))
     assert saved and (tmp_path / "ppo").glob("events.out.tfevents.*")
     obs = env.get_observations()
@@ -172,3 +175,32 @@ def test_rsl_rl_ppo_runs_in_the_prior_null_space_and_its_checkpoint_reloads(peg4
                            device="cpu")
     fresh.load(str(saved[-1]))
     torch.testing.assert_close(fresh.get_inference_policy(device="cpu")(obs), act, rtol=0, atol=0)
+
+
+README_SMALL = {  # the README's examples at test size (each replacement must apply: a changed README fails here)
+    'num_envs=16)': 'num_envs=2, device="cpu", cache_dir=CACHE, demos=DEMOS)',
+    'learning_starts=1024).learn(30_000)': 'learning_starts=16, batch_size=16).learn(64)',
+    'ppo_train_cfg("PegInsert", "factory", 16,': 'ppo_train_cfg("PegInsert", "factory", 2, num_steps_per_env=8,',
+    'log_dir="runs/my_ppo"': 'log_dir=LOGDIR',
+    'num_learning_iterations=15': 'num_learning_iterations=1',
+}
+
+
+def test_the_readmes_learner_examples_run(demos, tmp_path, wp_cpu):
+    """The README's stable-baselines3 and rsl-rl examples, run as written but at test size."""
+    pytest.importorskip("stable_baselines3")
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("## Your own learner")[1].split("\n## ")[0]
+    blocks = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    assert len(blocks) == 2 and "stable_baselines3" in blocks[0] and "OnPolicyRunner" in blocks[1]
+    for block in blocks:
+        for old, new in README_SMALL.items():
+            if old in block:
+                block = block.replace(old, new)
+        assert not any(old in block for old in README_SMALL)
+        scope = {"CACHE": tmp_path / "cache", "DEMOS": demos, "LOGDIR": str(tmp_path / "ppo")}
+        exec(compile(block, "README.md", "exec"), scope)
+    assert scope["runner"].current_learning_iteration == 0 and sorted((tmp_path / "ppo").glob("model_*.pt"))
+    assert scope["runner"].alg.get_policy().output_std.detach().max() < 0.2  # kgrl_ppo's init_std 0.1, not 1
+    used = "".join(blocks)
+    assert all(old in used for old in README_SMALL)  # every replacement applied to some block

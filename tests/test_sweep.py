@@ -93,7 +93,7 @@ def assert_finished(run_dir: Path, resumed: bool = False, killed_at_least: int =
 def test_grid_errors_name_the_axis_and_the_allowed_values(sweep_py, tmp_path, capsys):
     cases = [
         (["--grid", "quick", "--tasks", "Peg"], "tasks \\['Peg'\\] not allowed.*PegInsert"),
-        (["--grid", "quick", "--methods", "ppo"], "methods \\['ppo'\\] not allowed.*vision_kgrl"),
+        (["--grid", "quick", "--methods", "td3"], "methods \\['td3'\\] not allowed.*vision_kgrl', 'ppo', 'kgrl_ppo'"),
         (["--grid", "quick", "--seeds", "0", "0"], "repeats a value"),
         (GRID, "axis 'action_dims' is missing"),
         (["--grid", "nope"], "neither a named grid \\(thesis, quick\\)"),

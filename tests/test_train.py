@@ -426,8 +426,8 @@ def test_run_geometry_is_part_of_a_mesh_runs_identity(run_py, tmp_path):
 
     base = dict(task="GearMesh", method="kgrl", env="factory", action_dim=4, seed=0, num_envs=2, preset="quick",
                 no_time_obs=False)
-    prim = run_py.run_meta(argparse.Namespace(**base, geometry="primitives"), 8, SAC_PRESETS["quick"])
-    mesh = run_py.run_meta(argparse.Namespace(**base, geometry="mesh"), 8, SAC_PRESETS["quick"])
+    prim = run_py.run_meta(argparse.Namespace(**base, geometry="primitives", sac_config=SAC_PRESETS["quick"]), 8)
+    mesh = run_py.run_meta(argparse.Namespace(**base, geometry="mesh", sac_config=SAC_PRESETS["quick"]), 8)
     assert "geometry" not in prim and mesh["geometry"] == "mesh"
     assert {k: v for k, v in mesh.items() if k != "geometry"} == prim
     p = demos_path_for(tmp_path, "GearMesh", 16, 0)
@@ -447,8 +447,8 @@ def test_run_resume_with_another_geometry_is_refused(run_py, tmp_path, capsys):
     from vkgrl_newton.agents.sac import SAC_PRESETS
 
     args = argparse.Namespace(task="GearMesh", method="kgrl", env="factory", action_dim=4, seed=0, num_envs=2,
-                              preset="quick", no_time_obs=False, geometry="mesh")
-    meta = run_py.run_meta(args, run_py.observation_dim("factory", 0), SAC_PRESETS["quick"])
+                              preset="quick", no_time_obs=False, geometry="mesh", sac_config=SAC_PRESETS["quick"])
+    meta = run_py.run_meta(args, run_py.observation_dim("factory", 0))
     run_dir = tmp_path / "mesh_run"
     save_checkpoint(run_dir / "checkpoints" / "last.pt",
                     {"format": CHECKPOINT_FORMAT, "meta": meta, "counters": {}, "agent": {}, "rng": {}})

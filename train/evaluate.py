@@ -134,7 +134,7 @@ def main(argv=None) -> int:
 
         env.attach_vision(CameraLatent(env, encoder))
     action_path = None
-    if args.policy in ("kmp_prior", "kgrl", "vision_kgrl"):
+    if args.policy in ("kmp_prior", "kgrl", "vision_kgrl", "kgrl_ppo"):
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
         prior = payload["meta"].get("prior", {}) if payload is not None else {}
@@ -142,7 +142,14 @@ def main(argv=None) -> int:
                                        geometry=args.geometry, reference=prior.get("reference", "gmr") if prior else args.kmp_reference,
                                        **{k: prior[k] for k in ("lam", "beta", "l") if k in prior})
         action_path = KGRLActionPath(tables, env, reach_floor=1e-3 * prior.get("reach_floor_mm", 0.0))
-    if payload is not None:
+    if payload is not None and "ppo" in payload["meta"]:  # run.py --method ppo / kgrl_ppo
+        from vkgrl_newton.agents.ppo import PPOAgent
+
+        meta = payload["meta"]
+        agent = PPOAgent(env, meta["ppo"], device=str(env.tdev))
+        agent.load_state_dict(payload["agent"])
+        policy = AgentPolicy(agent, action_path, time_obs=meta["time_obs"])
+    elif payload is not None:
         from vkgrl_newton.agents.sac import SAC, SACConfig
 
         meta = payload["meta"]

@@ -62,7 +62,7 @@ from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, TASKS  # noqa: E402
 
 TASK_ORDER = tuple(TASKS)  # PegInsert, GearMesh, NutThread: the thesis's row order
-METHOD_ORDER = ("kgrl", "sac", "vision_kgrl", "vision_sac")  # the thesis's row order (alphabetical, not METHODS)
+METHOD_ORDER = ("kgrl", "sac", "vision_kgrl", "vision_sac", "kgrl_ppo", "ppo")  # the thesis's row order, then the PPO baselines
 COLUMNS = tuple((env, dim) for env in FAMILIES for dim in ACTION_DIMS)  # Factory 4D, 6D, Forge 4D, 6D
 TABLE_TITLES = {"mean_episode_reward": "Final mean reward", "success_rate": "Final success rate",
                 "mean_contact_force": "Final mean contact force magnitude (N)",

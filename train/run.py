@@ -6,6 +6,8 @@ Methods (thesis ch. 4-5): `sac` acts through Factory's delta-pose mapping; `kgrl
 SAC acting in the null space of the task's KMP prior (vkgrl_newton/agents/kgrl.py), the action
 path of eq. 4.36. `vision_sac` and `vision_kgrl` add the 16-d mean of a frozen denoising-VAE
 encoder of the hand camera's image to the policy observation (eq. 5.6; vkgrl_newton/vision/).
+Baselines beyond the thesis: `ppo` and `kgrl_ppo`, rsl-rl's PPO with Isaac Lab Factory's settings
+on the same two action paths (vkgrl_newton/agents/ppo_config.py; `--ppo KEY=VALUE` overrides).
 
 Everything a method needs is produced on first use and cached under `--cache-dir` (KGRL: scripted
 demonstrations recorded in the simulator, and the KMP tables fitted to them; vision: the task
@@ -49,6 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 # Light imports only above the parser (no torch, Warp, Newton or rsl-rl): --help and every argument
 # error answer in well under a second; the heavy modules load once the arguments are checked.
 from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
+from vkgrl_newton.agents.ppo_config import METHOD_PPO_DEFAULTS, parse_ppo_overrides, ppo_train_cfg  # noqa: E402
 from vkgrl_newton.agents.sac_config import SAC_PRESETS, SACConfig, make_sac_config  # noqa: E402
 from vkgrl_newton.cache import check_run_files  # noqa: E402
 from vkgrl_newton.cli_types import add_verbose_flag, positive_int, device_name  # noqa: E402
@@ -56,8 +59,8 @@ from vkgrl_newton.results.curves import CURVES_FILE, CurveWriter  # noqa: E402
 from vkgrl_newton.results.paired import (EVAL_SEED, cached_evaluation, format_gain, paired_gain,  # noqa: E402
                                          seed_evaluation, world_outcomes)
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
-from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, METHODS, TASKS, VISION_LATENT_DIM,  # noqa: E402
-                                geometry_error, observation_dim)
+from vkgrl_newton.tasks import (ACTION_DIMS, FAMILIES, GEOMETRIES, PPO_METHODS, RUN_METHODS, TASKS,  # noqa: E402
+                                VISION_LATENT_DIM, geometry_error, observation_dim)
 
 # what a run writes in its directory; one holding any of them holds a run (other files, such as a
 # sweep's train.log, may sit beside them)
@@ -86,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     ap.add_argument("--task", default="PegInsert", choices=sorted(TASKS))
-    ap.add_argument("--method", default="kgrl", choices=METHODS)
+    ap.add_argument("--method", default="kgrl", choices=RUN_METHODS)
     ap.add_argument("--env", default="factory", choices=FAMILIES)
     ap.add_argument("--action-dim", type=int, default=4, choices=ACTION_DIMS)
     ap.add_argument("--seed", type=int, default=0)
@@ -98,6 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--sac", metavar="FIELD=VALUE", action="append", default=[],
                     help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256 "
                          "(kgrl methods default to warmup=policy, actor_init_std=0.1, log_std_max=-1.2)")
+    ap.add_argument("--ppo", metavar="KEY=VALUE", action="append", default=[],
+                    help="ppo methods: override an rsl-rl PPO setting by its dotted path, e.g. --ppo "
+                         "num_steps_per_env=32 --ppo algorithm.learning_rate=3e-4 (default: Isaac Lab Factory's, "
+                         "agents/ppo_config.py; kgrl_ppo starts at actor.distribution_cfg.init_std=0.1)")
     ap.add_argument("--device", default=None, type=device_name, help="cpu or cuda:0 (default: cuda:0 when present)")
     ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES,
                     help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes with SDFs on CUDA; "
@@ -178,11 +185,16 @@ def unavailable(args) -> str | None:
     return None
 
 
-def run_meta(args, obs_dim: int, sac_cfg) -> dict:
-    """What identifies a run; a resumed run must match it field by field."""
+def run_meta(args, obs_dim: int) -> dict:
+    """What identifies a run; a resumed run must match it field by field. The learner's configuration:
+    "sac" (the SACConfig) or, for the ppo methods, "ppo" (the rsl-rl runner configuration)."""
     meta = {"task": args.task, "method": args.method, "env": args.env, "action_dim": args.action_dim,
             "seed": args.seed, "num_envs": args.num_envs, "preset": args.preset, "time_obs": not args.no_time_obs,
-            "obs_dim": obs_dim, "sac": dataclasses.asdict(sac_cfg)}
+            "obs_dim": obs_dim}
+    if uses_ppo(args.method):
+        meta["ppo"] = args.ppo_cfg
+    else:
+        meta["sac"] = dataclasses.asdict(args.sac_config)
     if args.geometry != "primitives":  # absent in the default case, so older checkpoints still resume
         meta["geometry"] = args.geometry
     if getattr(args, "label", None):  # absent unless given, so older runs still resume
@@ -197,7 +209,11 @@ def uses_vision(method: str) -> bool:
 
 
 def uses_kmp(method: str) -> bool:
-    return method in ("kgrl", "vision_kgrl")
+    return method in ("kgrl", "vision_kgrl", "kgrl_ppo")
+
+
+def uses_ppo(method: str) -> bool:
+    return method in PPO_METHODS
 
 
 def vae_path(args) -> Path:
@@ -225,7 +241,7 @@ def _explicit_args(argv) -> set[str]:
 def main(argv=None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
-    args.sac_config, payload = None, None
+    args.sac_config, args.ppo_cfg, payload = None, None, None
     if args.run_dir is not None and args.run_dir.is_dir() and any((args.run_dir / n).exists() for n in RUN_FILES):
         if not (args.run_dir / "checkpoints" / "last.pt").exists():  # with or without --resume: one message
             ap.error(_NO_CHECKPOINT.format(run_dir=args.run_dir))
@@ -274,7 +290,10 @@ def main(argv=None) -> int:
         for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every, eval_episodes, eval_seed
             if name not in given:
                 setattr(args, name, value)
-        if not args.sac:
+        if uses_ppo(args.method or ""):
+            if not args.ppo:
+                args.ppo_cfg = meta.get("ppo")
+        elif not args.sac:
             try:
                 args.sac_config = SACConfig(**meta["sac"])
             except (TypeError, ValueError) as e:
@@ -296,7 +315,20 @@ def main(argv=None) -> int:
     if not 0 <= args.seed < 2**32:
         ap.error(f"--seed {args.seed}: must be in [0, 2**32)")
     if args.demos is not None and not uses_kmp(args.method) and not args.resume:
-        ap.error(f"--demos is for the kgrl methods (kgrl, vision_kgrl), not {args.method!r}")
+        ap.error(f"--demos is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
+    if uses_ppo(args.method):  # PPO's settings are --ppo's; the SAC-loop options do not apply
+        # (--no-overlap is what PPO does anyway: sweep.py passes it to every one-core trial)
+        for flag, given_here in (("--sac", args.sac), ("--overlap", args.overlap is True),
+                                 ("--no-time-obs", args.no_time_obs)):
+            if given_here:
+                ap.error(f"{flag} is for the SAC methods (sac, kgrl, vision_sac, vision_kgrl), not {args.method!r}")
+        try:
+            args.ppo_overrides = {**METHOD_PPO_DEFAULTS.get(args.method, {}), **parse_ppo_overrides(args.ppo)}
+            ppo_train_cfg(args.task, args.env, 1, **args.ppo_overrides)  # checked now; sized below
+        except ValueError as e:
+            ap.error(f"--ppo: {e}")
+    elif args.ppo:
+        ap.error(f"--ppo is for the ppo methods ({', '.join(PPO_METHODS)}), not {args.method!r}")
     try:
         args.sac_overrides = parse_sac_overrides(args.sac)
     except ValueError as e:
@@ -305,20 +337,20 @@ def main(argv=None) -> int:
     # when it is given (a CUDA default is known only below; then it is checked again there)
     provisional = args.preset or ("thesis" if (args.device or "").startswith("cuda") else "quick")
     checked = args.sac_config
-    if checked is None:
+    if checked is None and not uses_ppo(args.method):
         try:
             checked = make_sac_config(provisional, **{**METHOD_SAC_DEFAULTS.get(args.method, {}), **args.sac_overrides})
         except ValueError as e:
             ap.error(f"--sac: {e}")
-    prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(checked, f)]
+    prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(checked, f, None)]
     if prior_only and not uses_kmp(args.method):
         ap.error(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl methods "
                  f"(kgrl, vision_kgrl), not {args.method!r}")
     if args.kmp_reference is not None and not uses_kmp(args.method):
-        ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl), not {args.method!r}")
+        ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
     if args.kgrl_reach_floor is not None:
         if not uses_kmp(args.method):
-            ap.error(f"--kgrl-reach-floor is for the kgrl methods (kgrl, vision_kgrl), not {args.method!r}")
+            ap.error(f"--kgrl-reach-floor is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
         if not (math.isfinite(args.kgrl_reach_floor) and 0 <= args.kgrl_reach_floor <= 50):
             ap.error(f"--kgrl-reach-floor must be a number of mm in [0, 50], got {args.kgrl_reach_floor}")
     if args.vae is not None and not uses_vision(args.method):
@@ -346,7 +378,7 @@ def main(argv=None) -> int:
     if (why := device_error(args.device)) is not None:
         ap.error(why)
     args.preset = args.preset or ("thesis" if args.device.startswith("cuda") else "quick")
-    if args.sac_config is None:
+    if args.sac_config is None and not uses_ppo(args.method):
         try:
             args.sac_config = (checked if args.preset == provisional else
                                make_sac_config(args.preset, **{**METHOD_SAC_DEFAULTS.get(args.method, {}),
@@ -359,6 +391,8 @@ def main(argv=None) -> int:
     args.checkpoint_every = args.checkpoint_every or defaults["checkpoint_every"]
     if args.eval_episodes is None:
         args.eval_episodes = -(-EVAL_MIN_EPISODES // args.num_envs)
+    if uses_ppo(args.method) and args.ppo_cfg is None:  # minibatches of ~512 transitions for these worlds
+        args.ppo_cfg = ppo_train_cfg(args.task, args.env, args.num_envs, **args.ppo_overrides)
     run_dir = args.run_dir or Path("runs/train") / (f"{args.task}_{args.method}_{args.env}_{args.action_dim}d_"
                                                      f"seed{args.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
     ckpt_path = run_dir / "checkpoints" / "last.pt"
@@ -377,8 +411,9 @@ def main(argv=None) -> int:
         try:
             saved = _without_file_records(payload["meta"])  # checked above, by content
             # a checkpoint from before a SACConfig field existed holds that field's default
-            saved["sac"] = dataclasses.asdict(SACConfig(**saved["sac"]))
-            now = run_meta(args, args.obs_dim, args.sac_config)
+            if "sac" in saved:
+                saved["sac"] = dataclasses.asdict(SACConfig(**saved["sac"]))
+            now = run_meta(args, args.obs_dim)
             for m in (saved, now):  # the default geometry is not stored; name it in a mismatch
                 m.setdefault("geometry", "primitives")
             from vkgrl_newton.agents.checkpoint import check_meta
@@ -406,8 +441,6 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     from tqdm import tqdm
 
     from vkgrl_newton.agents.checkpoint import save_checkpoint
-    from vkgrl_newton.agents.evaluation import policy_observation
-    from vkgrl_newton.agents.sac import SAC
     from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
     from vkgrl_newton.sim.scene import SimConfig
 
@@ -460,9 +493,15 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     step_fn = action_path.step if action_path is not None else env.step
     time_obs = not args.no_time_obs
     obs_dim = args.obs_dim  # observation_dim(), the same function the env uses
-    sac_cfg = args.sac_config
-    agent = SAC(obs_dim, args.action_dim, sac_cfg, device=env.tdev, seed=args.seed)
-    meta = run_meta(args, obs_dim, sac_cfg)
+    if uses_ppo(args.method):
+        from vkgrl_newton.agents.ppo import PPOAgent
+
+        agent = PPOAgent(env, args.ppo_cfg, device=str(env.tdev))
+    else:
+        from vkgrl_newton.agents.sac import SAC
+
+        agent = SAC(obs_dim, args.action_dim, args.sac_config, device=env.tdev, seed=args.seed)
+    meta = run_meta(args, obs_dim)
     if action_path is not None:  # exactly what the run learns from: the prior's file and parameters
         from vkgrl_newton.agents.kgrl import prior_record
 
@@ -487,141 +526,37 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         atomic_write_text(run_dir / "config.json", strict_json({**meta, **plan(args), "device": args.device},
                                                                indent=2))
 
-    def checkpoint() -> None:
-        save_checkpoint(ckpt_path, {"meta": meta, "counters": dict(counters), "agent": agent.state_dict(),
+    def checkpoint(pending_update: bool = False, snapshot: dict | None = None) -> None:
+        """The run as it is now, or as `snapshot` (agent, counters, rng) holds it."""
+        snapshot = snapshot or {"agent": agent.state_dict(), "counters": counters, "rng": _rng_state(env)}
+        save_checkpoint(ckpt_path, {"meta": meta, "counters": dict(snapshot["counters"]), "agent": snapshot["agent"],
                                     "pending_update": pending_update,  # overlapped loop: due, not yet run
-                                    "rng": _rng_state(env), "plan": plan(args)})
+                                    "rng": snapshot["rng"], "plan": plan(args)})
 
-    writer = SummaryWriter(str(run_dir / "tb"), purge_step=counters["transitions"] if payload else None)
+    # a resumed run drops what was logged after its checkpoint (as curves.jsonl does): the events at
+    # the checkpoint's own count were logged before it was written, so they stay
+    writer = SummaryWriter(str(run_dir / "tb"), purge_step=counters["transitions"] + 1 if payload else None)
     curves = CurveWriter(run_dir, resume_at=counters["transitions"] if payload else None)
     bar = tqdm(total=args.total_steps, initial=counters["transitions"], unit="tr", disable=args.no_progress,
                desc=f"{args.method} {args.task} {args.env} {args.action_dim}D")
-    # Overlapped loop (--overlap): env step k+1 runs in a worker thread while the main thread runs the
-    # update due after step k; the action of step k+1 is drawn before that update, i.e. from the
-    # policy after update k-1 (a one-update lag). The order of every draw from the agent's and the
-    # env's generators is fixed, so a seed gives the same run whatever the threads' timing.
-    overlap = (str(env.device) == "cpu") if args.overlap is None else args.overlap
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="env-step") if overlap else None
-    pending_update = bool(payload.get("pending_update", False)) if payload is not None else False
-    future = None
-
-    def timed_step(actions):
-        t = time.perf_counter()
-        result = step_fn(actions)
-        return result, time.perf_counter() - t
-
-    def run_update() -> None:
-        nonlocal update_time
-        t = time.perf_counter()
-        losses = agent.update()
-        update_time += time.perf_counter() - t
-        if counters["env_steps"] % 10 == 0:
-            for k, v in losses.items():
-                writer.add_scalar(f"train/{k}", v, counters["transitions"])
-        status["alpha"] = losses.get("alpha", float("nan"))
-
-    obs = env.get_observations()
-    last_ckpt = counters["transitions"] // args.checkpoint_every
-    env_time = update_time = 0.0
-    env_steps0, grad0 = counters["env_steps"], agent.num_updates
-    t_session = time.perf_counter()
-    first_transition_unix = time.time()  # a sweep's overhead: scheduled -> first env step (train/sweep.py)
-    status: dict[str, float] = {}
-    not_terminal = torch.zeros(env.num_envs, device=env.tdev)  # the `terminated` flags, all 0
-    t_start = time.perf_counter()
-    if payload is None:  # resumable from its first moment (a sweep's retry of a killed trial)
-        checkpoint()
-    try:
-        while counters["transitions"] < args.total_steps:
-            x = policy_observation(obs, time_obs)
-            a = agent.explore(x)
-            if pool is not None:
-                future = pool.submit(timed_step, a)
-                if pending_update:  # the update due after the previous step, while this one runs
-                    run_update()
-                    pending_update = False
-                (next_obs, reward, dones, extras), dt = future.result()  # a worker's exception surfaces here
-                future = None
-            else:
-                (next_obs, reward, dones, extras), dt = timed_step(a)
-            env_time += dt
-            x_next = policy_observation(next_obs, time_obs)
-            if "final_observations" in extras:  # time-outs bootstrap from the state they ended in
-                final = policy_observation(extras["final_observations"], time_obs)
-                x_next = torch.where(dones.unsqueeze(-1), final, x_next)
-            # episodes end by time-out only: nothing is terminal; blown-up worlds' rows are dropped
-            # (the env has counted them on the host already: no extra sync on the common path)
-            if extras["log"]["/physics_resets"] == 0:
-                agent.add(x, a, reward, x_next, not_terminal)
-            else:
-                keep = ~extras["physics_resets"]
-                agent.add(x[keep], a[keep], reward[keep], x_next[keep], not_terminal[keep])
-            obs = next_obs
-            counters["transitions"] += env.num_envs
-            counters["env_steps"] += 1
-            if pool is not None:
-                pending_update = agent.update_due()  # runs during the next env step
-            elif agent.update_due():
-                run_update()
-            if "episode" in extras:
-                ep = extras["episode"]
-                counters["episodes"] += 1
-                step = counters["transitions"]
-                writer.add_scalar("episode/reward", ep["episode_reward"], step)
-                writer.add_scalar("episode/success_rate", ep["success_rate"], step)
-                writer.add_scalar("episode/success_rate_any", ep["success_rate_any"], step)
-                writer.add_scalar("episode/mean_contact_force", ep["mean_contact_force"], step)
-                writer.add_scalar("episode/peak_contact_force", ep["peak_contact_force"], step)
-                if not math.isnan(ep["time_to_first_success_s"]):
-                    writer.add_scalar("episode/time_to_first_success_s", ep["time_to_first_success_s"], step)
-                writer.add_scalar("perf/env_steps_per_s", (counters["env_steps"] - env_steps0) * env.num_envs
-                                  / max(env_time, 1e-9), step)
-                if update_time > 0:
-                    writer.add_scalar("perf/grad_steps_per_s", (agent.num_updates - grad0) / update_time, step)
-                writer.add_scalar("perf/physics_resets", env.physics_resets_total, step)
-                writer.add_scalar("perf/ik_failures", env.ik_failures_total, step)
-                writer.add_scalar("perf/contact_overflows", env.contact_overflows_total, step)
-                curves.append(transitions=step, **{k: float(ep[k]) for k in CURVE_EPISODE_KEYS},
-                              wall_s=counters["wall_s"] + time.perf_counter() - t_start)
-                status.update(success=ep["success_rate"], reward=ep["episode_reward"], force=ep["mean_contact_force"])
-            bar.update(env.num_envs)
-            if status:
-                bar.set_postfix({k: f"{v:.3g}" for k, v in status.items()}, refresh=False)
-            if counters["transitions"] // args.checkpoint_every > last_ckpt:
-                last_ckpt = counters["transitions"] // args.checkpoint_every
-                counters["wall_s"] += time.perf_counter() - t_start
-                t_start = time.perf_counter()
-                checkpoint()
-        if pending_update:  # the last step's update: as many gradient steps as the serial loop
-            run_update()
-            pending_update = False
-    except KeyboardInterrupt as e:
-        if future is not None:  # let the worker finish its env step (its transition is dropped)
-            with contextlib.suppress(BaseException):
-                future.result()
-        counters["wall_s"] += time.perf_counter() - t_start
-        checkpoint()
-        bar.close()
-        writer.close()
-        log(f"{describe(e)}; checkpoint at {counters['transitions']} transitions in {ckpt_path} "
-            "(--resume continues)")
-        return exit_code(e)
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
-    counters["wall_s"] += time.perf_counter() - t_start
-    checkpoint()
-    bar.close()
+    loop = Loop(args=args, env=env, step_fn=step_fn, agent=agent, counters=counters, writer=writer, curves=curves,
+                bar=bar, checkpoint=checkpoint, ckpt_path=ckpt_path, log=log, time_obs=time_obs, env_steps0=counters["env_steps"],
+                grad0=agent.num_updates)
+    rc = (ppo_loop if uses_ppo(args.method) else sac_loop)(loop, payload)
+    if rc is not None:  # stopped by a signal: checkpointed, nothing evaluated
+        return rc
 
     summary = {"transitions": counters["transitions"], "env_steps": counters["env_steps"],
                "episodes": counters["episodes"], "gradient_steps": agent.num_updates, "wall_s": counters["wall_s"],
                # whole loop (env, acting, buffer, updates) vs the env and action path alone
-               "loop_transitions_per_s": (counters["env_steps"] - env_steps0) * env.num_envs
-               / max(time.perf_counter() - t_session, 1e-9),
-               "train_env_steps_per_s": (counters["env_steps"] - env_steps0) * env.num_envs / max(env_time, 1e-9),
-               "grad_steps_per_s": (agent.num_updates - grad0) / update_time if update_time > 0 else float("nan"),
+               "loop_transitions_per_s": (counters["env_steps"] - loop.env_steps0) * env.num_envs
+               / max(time.perf_counter() - loop.t_session, 1e-9),
+               "train_env_steps_per_s": (counters["env_steps"] - loop.env_steps0) * env.num_envs
+               / max(loop.env_time, 1e-9),
+               "grad_steps_per_s": ((agent.num_updates - loop.grad0) / loop.update_time if loop.update_time > 0
+                                    else float("nan")),
                "physics_resets": env.physics_resets_total, "ik_failures": env.ik_failures_total,
-               "contact_overflows": env.contact_overflows_total, "first_transition_unix": first_transition_unix,
+               "contact_overflows": env.contact_overflows_total, "first_transition_unix": loop.first_transition_unix,
                "resumed": payload is not None}
     metrics: dict = {}
     try:
@@ -639,7 +574,8 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         return exit_code(e)
     writer.close()
     result = {**metrics, **meta, "device": env.device, "checkpoint": str(ckpt_path), "training": summary}
-    result.pop("sac")
+    result.pop("sac", None)
+    result.pop("ppo", None)
     metrics_path = run_dir / "metrics.json"
     if metrics_path.exists():  # a finished run trained further: its earlier result stays beside the new one
         earlier = json.loads(metrics_path.read_text()).get("training", {}).get("transitions", "earlier")
@@ -658,6 +594,221 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     if "paired_gain" in metrics:
         log(paired_line(metrics))
     return 0
+
+
+class Loop:
+    """What a training loop (sac_loop, ppo_loop) works with, and the timings it keeps for the summary.
+    (A plain class: tests load this file as a module outside sys.modules, where a dataclass fails.)"""
+
+    def __init__(self, *, args, env, step_fn, agent, counters: dict, writer, curves: CurveWriter, bar, checkpoint,
+                 ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int):
+        self.args, self.env, self.agent, self.counters = args, env, agent, counters
+        self.step_fn = step_fn  # env.step, or the KGRL action path's step
+        self.writer, self.curves, self.bar, self.log = writer, curves, bar, log
+        self.checkpoint = checkpoint  # checkpoint(pending_update=False, snapshot=None)
+        self.ckpt_path, self.time_obs = ckpt_path, time_obs
+        self.env_steps0, self.grad0 = env_steps0, grad0  # where this session's throughput counts from
+        self.env_time = self.update_time = 0.0
+        self.t_session = time.perf_counter()
+        self.first_transition_unix = time.time()  # a sweep's overhead: scheduled -> first env step (sweep.py)
+        self.t_start = time.perf_counter()  # wall time not yet in counters["wall_s"]
+        self.status: dict[str, float] = {}  # the progress bar's postfix
+
+    def timed_step(self, actions):
+        t = time.perf_counter()
+        result = self.step_fn(actions)
+        return result, time.perf_counter() - t
+
+    def wall_s(self) -> float:
+        return self.counters["wall_s"] + time.perf_counter() - self.t_start
+
+    def bank_wall_time(self) -> None:
+        """Move the wall time since the last call into counters (before a checkpoint)."""
+        self.counters["wall_s"] += time.perf_counter() - self.t_start
+        self.t_start = time.perf_counter()
+
+    def after_step(self, extras: dict) -> None:
+        """Count one batched env step; log an ended episode (tensorboard, curves.jsonl, the bar)."""
+        counters, writer, env = self.counters, self.writer, self.env
+        counters["transitions"] += env.num_envs
+        counters["env_steps"] += 1
+        if "episode" in extras:
+            ep = extras["episode"]
+            counters["episodes"] += 1
+            step = counters["transitions"]
+            writer.add_scalar("episode/reward", ep["episode_reward"], step)
+            writer.add_scalar("episode/success_rate", ep["success_rate"], step)
+            writer.add_scalar("episode/success_rate_any", ep["success_rate_any"], step)
+            writer.add_scalar("episode/mean_contact_force", ep["mean_contact_force"], step)
+            writer.add_scalar("episode/peak_contact_force", ep["peak_contact_force"], step)
+            if not math.isnan(ep["time_to_first_success_s"]):
+                writer.add_scalar("episode/time_to_first_success_s", ep["time_to_first_success_s"], step)
+            writer.add_scalar("perf/env_steps_per_s", (counters["env_steps"] - self.env_steps0) * env.num_envs
+                              / max(self.env_time, 1e-9), step)
+            if self.update_time > 0:
+                writer.add_scalar("perf/grad_steps_per_s", (self.agent.num_updates - self.grad0) / self.update_time,
+                                  step)
+            writer.add_scalar("perf/physics_resets", env.physics_resets_total, step)
+            writer.add_scalar("perf/ik_failures", env.ik_failures_total, step)
+            writer.add_scalar("perf/contact_overflows", env.contact_overflows_total, step)
+            self.curves.append(transitions=step, **{k: float(ep[k]) for k in CURVE_EPISODE_KEYS}, wall_s=self.wall_s())
+            self.status.update(success=ep["success_rate"], reward=ep["episode_reward"], force=ep["mean_contact_force"])
+        self.bar.update(env.num_envs)
+        if self.status:
+            self.bar.set_postfix({k: f"{v:.3g}" for k, v in self.status.items()}, refresh=False)
+
+    def stopped(self, e: BaseException, snapshot: dict | None = None, pending_update: bool = False) -> int:
+        """Ctrl-C / SIGTERM: checkpoint (the run now, or `snapshot`), close the logs, say how to go on."""
+        self.bank_wall_time()
+        if snapshot is not None:  # the wall time spent since counts, though its partial work is redone
+            snapshot["counters"]["wall_s"] = self.counters["wall_s"]
+        self.checkpoint(pending_update, snapshot)
+        self.bar.close()
+        self.writer.close()
+        at = (snapshot or {"counters": self.counters})["counters"]["transitions"]
+        self.log(f"{describe(e)}; checkpoint at {at} transitions in {self.ckpt_path} (--resume continues)")
+        return exit_code(e)
+
+
+def sac_loop(loop: Loop, payload: dict | None) -> int | None:
+    """SAC (sac, kgrl, vision_*): a transition per world per step into the replay buffer, updates as
+    SACConfig says. None when done, an exit code when stopped by a signal (checkpointed)."""
+    import torch
+
+    from vkgrl_newton.agents.evaluation import policy_observation
+
+    args, env, agent, counters = loop.args, loop.env, loop.agent, loop.counters
+    # Overlapped loop (--overlap): env step k+1 runs in a worker thread while the main thread runs the
+    # update due after step k; the action of step k+1 is drawn before that update, i.e. from the
+    # policy after update k-1 (a one-update lag). The order of every draw from the agent's and the
+    # env's generators is fixed, so a seed gives the same run whatever the threads' timing.
+    overlap = (str(env.device) == "cpu") if args.overlap is None else args.overlap
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="env-step") if overlap else None
+    pending_update = bool(payload.get("pending_update", False)) if payload is not None else False
+    future = None
+
+    def run_update() -> None:
+        t = time.perf_counter()
+        losses = agent.update()
+        loop.update_time += time.perf_counter() - t
+        if counters["env_steps"] % 10 == 0:
+            for k, v in losses.items():
+                loop.writer.add_scalar(f"train/{k}", v, counters["transitions"])
+        loop.status["alpha"] = losses.get("alpha", float("nan"))
+
+    obs = env.get_observations()
+    last_ckpt = counters["transitions"] // args.checkpoint_every
+    not_terminal = torch.zeros(env.num_envs, device=env.tdev)  # the `terminated` flags, all 0
+    loop.t_start = time.perf_counter()
+    if payload is None:  # resumable from its first moment (a sweep's retry of a killed trial)
+        loop.checkpoint()
+    try:
+        while counters["transitions"] < args.total_steps:
+            x = policy_observation(obs, loop.time_obs)
+            a = agent.explore(x)
+            if pool is not None:
+                future = pool.submit(loop.timed_step, a)
+                if pending_update:  # the update due after the previous step, while this one runs
+                    run_update()
+                    pending_update = False
+                (next_obs, reward, dones, extras), dt = future.result()  # a worker's exception surfaces here
+                future = None
+            else:
+                (next_obs, reward, dones, extras), dt = loop.timed_step(a)
+            loop.env_time += dt
+            x_next = policy_observation(next_obs, loop.time_obs)
+            if "final_observations" in extras:  # time-outs bootstrap from the state they ended in
+                final = policy_observation(extras["final_observations"], loop.time_obs)
+                x_next = torch.where(dones.unsqueeze(-1), final, x_next)
+            # episodes end by time-out only: nothing is terminal; blown-up worlds' rows are dropped
+            # (the env has counted them on the host already: no extra sync on the common path)
+            if extras["log"]["/physics_resets"] == 0:
+                agent.add(x, a, reward, x_next, not_terminal)
+            else:
+                keep = ~extras["physics_resets"]
+                agent.add(x[keep], a[keep], reward[keep], x_next[keep], not_terminal[keep])
+            obs = next_obs
+            loop.after_step(extras)
+            if pool is not None:
+                pending_update = agent.update_due()  # runs during the next env step
+            elif agent.update_due():
+                run_update()
+            if counters["transitions"] // args.checkpoint_every > last_ckpt:
+                last_ckpt = counters["transitions"] // args.checkpoint_every
+                loop.bank_wall_time()
+                loop.checkpoint(pending_update)
+        if pending_update:  # the last step's update: as many gradient steps as the serial loop
+            run_update()
+            pending_update = False
+    except KeyboardInterrupt as e:
+        if future is not None:  # let the worker finish its env step (its transition is dropped)
+            with contextlib.suppress(BaseException):
+                future.result()
+        return loop.stopped(e, pending_update=pending_update)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+    loop.bank_wall_time()
+    loop.checkpoint()
+    loop.bar.close()
+    return None
+
+
+def ppo_loop(loop: Loop, payload: dict | None) -> int | None:
+    """rsl-rl's PPO (ppo, kgrl_ppo): OnPolicyRunner.learn's loop (num_steps_per_env steps of every
+    world, the returns, one PPO update) with this project's logging and checkpoints. A checkpoint
+    holds the run at an update's end; a stop in mid-rollout saves the last update's end (the
+    partial rollout is collected again on resume). None when done, an exit code when stopped."""
+    import copy
+
+    import torch
+
+    args, env, agent, counters = loop.args, loop.env, loop.agent, loop.counters
+    alg = agent.alg
+
+    def snapshot() -> dict:
+        return {"agent": copy.deepcopy(agent.state_dict()), "counters": dict(counters), "rng": _rng_state(env)}
+
+    obs = env.get_observations().to(agent.device)
+    alg.train_mode()
+    last_ckpt = counters["transitions"] // args.checkpoint_every
+    loop.t_start = time.perf_counter()
+    if payload is None:
+        loop.checkpoint()
+    at_update = snapshot()
+    try:
+        while counters["transitions"] < args.total_steps:
+            with torch.inference_mode():
+                for _ in range(agent.num_steps_per_env):
+                    actions = alg.act(obs)
+                    (obs, rewards, dones, extras), dt = loop.timed_step(actions.to(env.tdev))
+                    loop.env_time += dt
+                    obs, rewards, dones = obs.to(agent.device), rewards.to(agent.device), dones.to(agent.device)
+                    # episodes end by time-out (extras["time_outs"]: PPO bootstraps them) or by a blow-up
+                    # (the env reset and counted that world; PPO takes it as terminal)
+                    alg.process_env_step(obs, rewards, dones, extras)
+                    loop.after_step(extras)
+                alg.compute_returns(obs)
+            t = time.perf_counter()
+            losses = alg.update()
+            agent.iterations += 1
+            loop.update_time += time.perf_counter() - t
+            step = counters["transitions"]
+            for k, v in losses.items():
+                loop.writer.add_scalar(f"train/{k}", v, step)
+            loop.writer.add_scalar("train/learning_rate", alg.learning_rate, step)
+            loop.writer.add_scalar("train/action_std", float(alg.get_policy().output_std.detach().mean()), step)
+            loop.status["std"] = float(alg.get_policy().output_std.detach().mean())
+            loop.bank_wall_time()
+            at_update = snapshot()
+            if counters["transitions"] // args.checkpoint_every > last_ckpt:
+                last_ckpt = counters["transitions"] // args.checkpoint_every
+                loop.checkpoint(snapshot=at_update)
+    except KeyboardInterrupt as e:
+        return loop.stopped(e, snapshot=at_update)
+    loop.checkpoint(snapshot=at_update)
+    loop.bar.close()
+    return None
 
 
 def plan(args) -> dict:

@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.cli_types import stderr_without  # noqa: E402
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
-from vkgrl_newton.tasks import ACTION_DIMS, METHODS  # noqa: E402
+from vkgrl_newton.tasks import ACTION_DIMS, METHODS, RUN_METHODS  # noqa: E402
 from vkgrl_newton.tasks import FAMILIES as ENVS  # noqa: E402
 from vkgrl_newton.tasks import TASKS as TASK_SPECS  # noqa: E402
 from vkgrl_newton.sweep import (TrialProcessDied, log_tail, read_trial_state, run_trial, trial_status,  # noqa: E402
@@ -68,7 +68,7 @@ GRIDS = {
               "seeds": [0, 1, 2]},
 }
 FORBIDDEN_RUN_ARGS = ("--run-dir", "--task", "--env", "--action-dim", "--method", "--seed", "--resume")
-ALLOWED = {"tasks": TASKS, "envs": ENVS, "action_dims": ACTION_DIMS, "methods": METHODS}
+ALLOWED = {"tasks": TASKS, "envs": ENVS, "action_dims": ACTION_DIMS, "methods": RUN_METHODS}  # (+ the ppo baselines)
 # ----------------------------------------------------------------------------- the grid
 def validate_grid(grid: dict) -> dict:
     """The grid with its axes checked; ValueError names a bad axis or value and the allowed ones."""

@@ -56,6 +56,10 @@ _deg = math.radians
 FAMILIES = ("factory", "forge")
 ACTION_DIMS = (4, 6)
 METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
+# Baselines beyond the thesis, through train/run.py too: rsl-rl's PPO with Isaac Lab Factory's settings,
+# on the delta-pose path (ppo) and in the KMP prior's null space (kgrl_ppo; agents/ppo.py).
+PPO_METHODS = ("ppo", "kgrl_ppo")
+RUN_METHODS = METHODS + PPO_METHODS
 # The parts' collision geometry (sim/scene.py): the primitives everywhere; tooth / thread meshes
 # (SDFs on CUDA) for the tasks whose primitives are approximations.
 GEOMETRIES = ("primitives", "mesh")

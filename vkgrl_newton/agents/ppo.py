@@ -1,69 +1,75 @@
-"""rsl-rl's PPO on the assembly env: the runner configuration and the KGRL env it acts through.
+"""rsl-rl's PPO on the assembly env: the agent train/run.py drives, and the KGRL env it acts through.
 
 The env is already an rsl-rl `VecEnv` (envs.assembly_env.AssemblyEnv); `KGRLVecEnv` is the same
 env acting in the KMP prior's null space (agents.kgrl.KGRLActionPath), for PPO in the prior's null
-space. `ppo_train_cfg` gives rsl-rl's `OnPolicyRunner` Isaac Lab Factory's PPO settings
-(shared/reference/isaaclab_factory_facts.md section 10, rl_games' `rl_games_ppo_cfg.yaml`):
-gamma 0.995, lambda 0.95, learning rate 1e-4 with the adaptive KL schedule (desired KL 0.008),
-clip 0.2, entropy 0, value coefficient 2, gradient norm 1.0, 4 mini-epochs, 128 steps per env per
-iteration (256 for Forge NutThread), minibatches of 512 transitions, the actor MLP [512, 128, 64]
-ELU with a state-independent Gaussian (std 1, log-std 0), input normalization.
-What differs, and why:
-- no LSTM (Factory's actor has 2 x 1024 LSTM units before the MLP): rsl-rl's MLPModel; the
-  third-party LSTM-free rerun of Factory's config reached 97.7-98.3 % (same reference);
-- no asymmetric critic: the critic sees the actor's observation (the env has no privileged
-  critic state yet);
-- no value normalization, bounds loss or mixed precision (rsl-rl has none of the first two; the
-  third is off on a CPU).
+space. The configuration (Isaac Lab Factory's PPO settings, and what differs) is plain data in
+agents/ppo_config.py. `PPOAgent` holds rsl-rl's PPO algorithm as `OnPolicyRunner` builds it, with
+the small interface run.py and the evaluation need: `act`, `state_dict` / `load_state_dict` and the
+count of gradient steps; run.py runs the rollout / update loop itself (OnPolicyRunner.learn's loop)
+so that PPO runs log, checkpoint, resume and evaluate like the SAC methods.
 """
 
 from __future__ import annotations
 
-import copy
-
+import torch
+from rsl_rl.algorithms import PPO
 from rsl_rl.env import VecEnv
+from tensordict import TensorDict
 
-__all__ = ["FACTORY_PPO", "ppo_train_cfg", "KGRLVecEnv"]
+from .ppo_config import FACTORY_PPO, METHOD_PPO_DEFAULTS, MINIBATCH, parse_ppo_overrides, ppo_train_cfg
 
-# Factory's rl_games values (see the module docstring), in rsl-rl's names
-FACTORY_PPO = {
-    "num_steps_per_env": 128,  # rl_games horizon_length; 256 for Forge NutThread
-    "save_interval": 50,
-    "obs_groups": {"actor": ["policy"], "critic": ["policy"]},
-    "algorithm": {
-        "class_name": "PPO", "num_learning_epochs": 4, "clip_param": 0.2, "gamma": 0.995, "lam": 0.95,
-        "value_loss_coef": 2.0, "entropy_coef": 0.0, "learning_rate": 1e-4, "max_grad_norm": 1.0,
-        "schedule": "adaptive", "desired_kl": 0.008, "use_clipped_value_loss": True,
-    },
-    "actor": {"class_name": "MLPModel", "hidden_dims": [512, 128, 64], "activation": "elu", "obs_normalization": True,
-              "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": 1.0, "std_type": "scalar"}},
-    "critic": {"class_name": "MLPModel", "hidden_dims": [512, 128, 64], "activation": "elu", "obs_normalization": True},
-    "multi_gpu": None,
-    "logger": "tensorboard",
-    "check_for_nan": True,
-}
-MINIBATCH = 512  # transitions per minibatch (rl_games minibatch_size)
+__all__ = ["FACTORY_PPO", "MINIBATCH", "METHOD_PPO_DEFAULTS", "ppo_train_cfg", "parse_ppo_overrides", "PPOAgent",
+           "KGRLVecEnv", "start_at_prior"]
 
 
-def ppo_train_cfg(task: str, family: str, num_envs: int, **overrides) -> dict:
-    """The OnPolicyRunner configuration for `num_envs` worlds: FACTORY_PPO with Forge NutThread's longer
-    horizon and as many minibatches as make ~512 transitions each (at least 1). `overrides` replace
-    top-level keys or, as "algorithm.NAME", single algorithm settings."""
-    cfg = copy.deepcopy(FACTORY_PPO)
-    if family == "forge" and task == "NutThread":
-        cfg["num_steps_per_env"] = 256
-    for key, value in overrides.items():
-        if key.startswith("algorithm."):
-            name = key.split(".", 1)[1]
-            if name not in cfg["algorithm"]:
-                raise ValueError(f"PPO setting {name!r} unknown; allowed: {sorted(cfg['algorithm'])}")
-            cfg["algorithm"][name] = value
-        elif key in cfg:
-            cfg[key] = value
-        else:
-            raise ValueError(f"PPO setting {key!r} unknown; allowed: {sorted(cfg)} or algorithm.<name>")
-    cfg["algorithm"]["num_mini_batches"] = max(1, num_envs * cfg["num_steps_per_env"] // MINIBATCH)
-    return cfg
+def start_at_prior(alg: PPO) -> None:
+    """Start the actor's mean action at ~0 (for kgrl_ppo: the KMP prior), as KGRL's SAC actor starts:
+    its last layer's weights scaled by 1e-3, its bias 0. For an OnPolicyRunner of your own, call it on
+    `runner.alg` before learning (PPOAgent does when its cfg says `start_at_prior`)."""
+    head = [m for m in alg.get_policy().mlp.modules() if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        head.weight.mul_(1e-3)
+        head.bias.zero_()
+
+
+class PPOAgent:
+    """rsl-rl's PPO (actor, critic, rollout storage, optimizer) for `env`'s observations, built the way
+    OnPolicyRunner builds it. `alg` is rsl-rl's object; the loop calls alg.act / process_env_step /
+    compute_returns / update. `cfg` is a ppo_train_cfg dict (copied: rsl-rl resolves it in place)."""
+
+    def __init__(self, env: VecEnv, cfg: dict, device: str = "cpu"):
+        import contextlib
+        import copy
+        import io
+
+        self.cfg = copy.deepcopy(cfg)
+        rsl_cfg = {k: v for k, v in copy.deepcopy(cfg).items() if k != "start_at_prior"}  # (this project's key)
+        with contextlib.redirect_stdout(io.StringIO()):  # construct_algorithm prints both networks
+            self.alg = PPO.construct_algorithm(env.get_observations().to(device), env, rsl_cfg, device)
+        if cfg.get("start_at_prior"):
+            start_at_prior(self.alg)
+        self.device = device
+        self.num_steps_per_env = int(cfg["num_steps_per_env"])
+        self.iterations = 0  # PPO updates run (each: num_learning_epochs x num_mini_batches gradient steps)
+
+    @property
+    def num_updates(self) -> int:
+        """Gradient steps so far (as SAC counts them)."""
+        a = self.cfg["algorithm"]
+        return self.iterations * int(a["num_learning_epochs"]) * int(a["num_mini_batches"])
+
+    @torch.no_grad()
+    def act(self, x: torch.Tensor, deterministic: bool = True) -> torch.Tensor:
+        """Actions for policy observations `x` (N, obs_dim): the Gaussian's mean, or a sample."""
+        obs = TensorDict({"policy": x.to(self.device)}, batch_size=[x.shape[0]])
+        return self.alg.get_policy()(obs, stochastic_output=not deterministic)
+
+    def state_dict(self) -> dict:
+        return {**self.alg.save(), "iterations": self.iterations}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.alg.load(state, None, strict=True)
+        self.iterations = int(state["iterations"])
 
 
 class KGRLVecEnv(VecEnv):

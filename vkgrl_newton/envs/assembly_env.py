@@ -280,6 +280,8 @@ class AssemblyEnv(VecEnv):
         self.step_index = torch.zeros(E, dtype=torch.int32, device=tdev)  # int32 copy for Warp kernels
         self.success = torch.zeros(E, dtype=torch.bool, device=tdev)
         self.success_any = torch.zeros(E, dtype=torch.bool, device=tdev)
+        # per-world outcome of the last finished episode, kept past the auto-reset (demo recording)
+        self.last_episode_success_any = torch.zeros(E, dtype=torch.bool, device=tdev)
         self.first_success_step = torch.full((E,), -1, dtype=torch.long, device=tdev)
         self.episode_reward = z(E)
         self.vision_latent = z(E, cfg.vision_latent_dim)
@@ -747,7 +749,9 @@ class AssemblyEnv(VecEnv):
             tcp_yaw = torch.remainder(tcp_yaw, 2 * math.pi)  # Factory's Euler yaw is in [0, 2 pi), then wrap_yaw:
             tcp_yaw = torch.where(tcp_yaw > math.radians(235.0), tcp_yaw - 2 * math.pi, tcp_yaw)  # (-125, 235] deg
             success = success & (tcp_yaw < self.geometry.success_tcp_yaw_max)
-        self.success = success
+        # in place, as every state tensor here: a step under torch.inference_mode (rsl-rl's runner)
+        # must not leave inference tensors behind that a later reset outside it cannot write
+        self.success.copy_(success)
         newly = success & (self.first_success_step < 0)
         self.first_success_step.copy_(torch.where(newly, self.episode_length_buf, self.first_success_step))
         self.success_any |= success
@@ -792,8 +796,7 @@ class AssemblyEnv(VecEnv):
             # the finished episodes' metrics, before the reset; a world that blew up on its last
             # step has no meaningful episode (num_episodes counts the others)
             extras["episode"] = self.episode_metrics(time_out & ~blown if n_blown else time_out)
-            # per-world outcome of the finished episode, kept past the auto-reset (demo recording)
-            self.last_episode_success_any = self.success_any.clone()
+            self.last_episode_success_any.copy_(self.success_any)
             for k, val in extras["episode"].items():
                 if k != "env_ids":
                     log[f"/episode/{k}"] = val

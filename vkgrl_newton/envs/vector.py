@@ -124,6 +124,16 @@ class AssemblyVectorEnv(VectorEnv):
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
 
+    def rsl_rl_env(self):
+        """The same worlds as an rsl-rl `VecEnv` for rsl-rl's runners: the env itself, or for a KGRL id
+        the env acting through its prior's null space (agents.ppo.KGRLVecEnv). Both share this env's
+        state: step one or the other, not both."""
+        if self.action_path is None:
+            return self.env
+        from ..agents.ppo import KGRLVecEnv
+
+        return KGRLVecEnv(self.env, self.action_path)
+
     # -- the gymnasium contract ---------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is not None:
