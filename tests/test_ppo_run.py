@@ -65,6 +65,8 @@ def test_ppo_configuration_overrides_by_dotted_path_and_refuses_the_unknown():
     (["--method", "sac", "--ppo", "num_steps_per_env=8"], "--ppo is for the ppo methods (ppo, kgrl_ppo), not 'sac'"),
     (["--method", "ppo", "--ppo", "algorithm.gama=1"], "--ppo: PPO setting 'algorithm.gama' unknown"),
     (["--method", "ppo", "--kgrl-reach-floor", "3"], "--kgrl-reach-floor is for the kgrl methods"),
+    (["--method", "ppo", "--ppo", "save_interval=5"], "save_interval is for rsl-rl's OnPolicyRunner"),
+    (["--method", "ppo", "--ppo", "multi_gpu=1"], "multi_gpu is for rsl-rl's OnPolicyRunner"),
 ])
 def test_run_ppo_bad_flags_are_one_line_errors(run_py, argv, message, capsys):
     with pytest.raises(SystemExit) as e:
@@ -74,7 +76,8 @@ def test_run_ppo_bad_flags_are_one_line_errors(run_py, argv, message, capsys):
     assert message in err
 
 
-def test_run_ppo_stop_in_mid_rollout_keeps_the_last_update_and_resumes(run_py, wp_cpu, tmp_path, monkeypatch):
+def test_run_ppo_stop_in_mid_rollout_keeps_the_last_update_and_resumes(run_py, wp_cpu, tmp_path, monkeypatch,
+                                                                         capsys):
     from vkgrl_newton.agents.checkpoint import load_checkpoint
     from vkgrl_newton.envs.assembly_env import AssemblyEnv
 
@@ -127,9 +130,12 @@ def test_run_ppo_stop_in_mid_rollout_keeps_the_last_update_and_resumes(run_py, w
     metrics = json.loads((tmp_path / "stopped" / "metrics.json").read_text())
     assert metrics["training"]["gradient_steps"] == 5 * 4 * 1  # iterations x epochs x minibatches
     assert metrics["training"]["resumed"] is True and "success_rate" not in metrics  # (no evaluation asked)
-    # resuming a ppo run with --sac is refused like any SAC-only option
-    with pytest.raises(SystemExit):
-        run_py.main(["--run-dir", str(tmp_path / "stopped"), "--resume", "--total-steps", "80", "--sac", "lr=1"])
+    # resuming a ppo run with --sac is refused like any SAC-only option; as a SAC method, by its identity
+    for extra, message in ((["--sac", "lr=1"], "--sac is for the SAC methods"),
+                           (["--method", "sac"], "method: checkpoint 'ppo', now 'sac'")):
+        with pytest.raises(SystemExit) as e:
+            run_py.main(["--run-dir", str(tmp_path / "stopped"), "--resume", "--total-steps", "80", *extra])
+        assert e.value.code == 2 and message in capsys.readouterr().err.strip().splitlines()[-1]
 
 
 def test_run_kgrl_ppo_starts_at_the_prior_and_reports_the_paired_gain(run_py, wp_cpu, tmp_path, demos_file):

@@ -83,6 +83,9 @@ CURVE_EPISODE_KEYS = ("episode_reward", "success_rate", "success_rate_any", "mea
                       "peak_contact_force", "time_to_first_success_s")  # the env's episode log -> curves.jsonl
 KGRL_EXPLORATION = {"warmup": "policy", "actor_init_std": 0.1, "log_std_max": -1.2}
 METHOD_SAC_DEFAULTS: dict[str, dict] = {"kgrl": KGRL_EXPLORATION, "vision_kgrl": KGRL_EXPLORATION}
+# ppo_train_cfg settings that only rsl-rl's OnPolicyRunner reads: refused by --ppo, with what run.py does instead
+PPO_RUNNER_ONLY = {"save_interval": "checkpoints: --checkpoint-every", "logger": "it writes tensorboard itself",
+                   "multi_gpu": "one device per run"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -293,7 +296,7 @@ def main(argv=None) -> int:
         if uses_ppo(args.method or ""):
             if not args.ppo:
                 args.ppo_cfg = meta.get("ppo")
-        elif not args.sac:
+        elif not args.sac and "sac" in meta:  # (a PPO run resumed as a SAC method: check_meta names it below)
             try:
                 args.sac_config = SACConfig(**meta["sac"])
             except (TypeError, ValueError) as e:
@@ -324,6 +327,8 @@ def main(argv=None) -> int:
                 ap.error(f"{flag} is for the SAC methods (sac, kgrl, vision_sac, vision_kgrl), not {args.method!r}")
         try:
             args.ppo_overrides = {**METHOD_PPO_DEFAULTS.get(args.method, {}), **parse_ppo_overrides(args.ppo)}
+            for key in set(args.ppo_overrides) & set(PPO_RUNNER_ONLY):
+                raise ValueError(f"{key} is for rsl-rl's OnPolicyRunner, not run.py's loop ({PPO_RUNNER_ONLY[key]})")
             ppo_train_cfg(args.task, args.env, 1, **args.ppo_overrides)  # checked now; sized below
         except ValueError as e:
             ap.error(f"--ppo: {e}")
@@ -534,7 +539,8 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                                     "rng": snapshot["rng"], "plan": plan(args)})
 
     # a resumed run drops what was logged after its checkpoint (as curves.jsonl does): the events at
-    # the checkpoint's own count were logged before it was written, so they stay
+    # the checkpoint's own count were logged before it was written, so they stay (an update pending at
+    # the checkpoint, or an interrupted final evaluation, logs a second point at that count on resume)
     writer = SummaryWriter(str(run_dir / "tb"), purge_step=counters["transitions"] + 1 if payload else None)
     curves = CurveWriter(run_dir, resume_at=counters["transitions"] if payload else None)
     bar = tqdm(total=args.total_steps, initial=counters["transitions"], unit="tr", disable=args.no_progress,
@@ -765,6 +771,10 @@ def ppo_loop(loop: Loop, payload: dict | None) -> int | None:
 
     args, env, agent, counters = loop.args, loop.env, loop.agent, loop.counters
     alg = agent.alg
+    if agent.cfg.get("check_for_nan", True):  # as OnPolicyRunner: a ValueError naming what holds the NaN
+        from rsl_rl.utils import check_nan
+    else:
+        check_nan = None
 
     def snapshot() -> dict:
         return {"agent": copy.deepcopy(agent.state_dict()), "counters": dict(counters), "rng": _rng_state(env)}
@@ -784,6 +794,8 @@ def ppo_loop(loop: Loop, payload: dict | None) -> int | None:
                     (obs, rewards, dones, extras), dt = loop.timed_step(actions.to(env.tdev))
                     loop.env_time += dt
                     obs, rewards, dones = obs.to(agent.device), rewards.to(agent.device), dones.to(agent.device)
+                    if check_nan is not None:
+                        check_nan(obs, rewards, dones)
                     # episodes end by time-out (extras["time_outs"]: PPO bootstraps them) or by a blow-up
                     # (the env reset and counted that world; PPO takes it as terminal)
                     alg.process_env_step(obs, rewards, dones, extras)
@@ -859,7 +871,10 @@ def paired_line(metrics: dict) -> str:
 def _rng_state(env) -> dict:
     import torch
 
-    return {"torch": torch.get_rng_state(), "env_torch": env.generator.get_state()}
+    state = {"torch": torch.get_rng_state(), "env_torch": env.generator.get_state()}
+    if str(env.tdev).startswith("cuda"):  # rsl-rl's PPO samples actions and minibatches from the device's generator
+        state["cuda"] = torch.cuda.get_rng_state(env.tdev)
+    return state
 
 
 def _restore_rng(state: dict, env) -> None:
@@ -867,6 +882,8 @@ def _restore_rng(state: dict, env) -> None:
 
     torch.set_rng_state(state["torch"])
     env.generator.set_state(state["env_torch"])  # (older checkpoints also hold an unused "env_numpy")
+    if "cuda" in state and str(env.tdev).startswith("cuda"):
+        torch.cuda.set_rng_state(state["cuda"], env.tdev)
 
 
 _TORCH_THREADS = None  # set when run as a program: one intra-op thread (the loop overlaps env and learner)
