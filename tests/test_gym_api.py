@@ -204,3 +204,30 @@ def test_the_readmes_learner_examples_run(demos, tmp_path, wp_cpu):
     assert scope["runner"].alg.get_policy().output_std.detach().max() < 0.2  # kgrl_ppo's init_std 0.1, not 1
     used = "".join(blocks)
     assert all(old in used for old in README_SMALL)  # every replacement applied to some block
+
+
+@pytest.mark.parametrize("task", sorted(TASKS))
+def test_every_registered_id_makes_resets_and_steps(task, tmp_path_factory, wp_cpu):
+    """Each of the task's 16 ids through gymnasium.make_vec with 1 world on the CPU: the KGRL ids with
+    synthetic demonstrations of the task, the Vision ids with an untrained 32-px VAE of the task (their
+    prior and encoder as the ids prepare them, without the minutes of recording and training)."""
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.vision import DenoisingVAE, VAEConfig, save_vae
+
+    root = tmp_path_factory.mktemp(f"ids_{task}")
+    demos = synthetic_demos(task, 6, action_dim=6, seed=0).save(root / "demos.npz")
+    cfg = VAEConfig(resolution=32, channels=(8, 16, 16, 32, 32), groups=8)
+    vae = save_vae(root / "vae.pt", DenoisingVAE(cfg, torch.Generator().manual_seed(0)), cfg, {"task": task})
+    ids = {name: kw for name, kw in env_ids().items() if kw["task"] == task}
+    assert len(ids) == 16
+    for name, kw in ids.items():
+        extra = {"demos": demos} if kw["kgrl"] else {}
+        extra |= {"vae": vae} if kw["vision"] else {}
+        envs = gym.make_vec(name, num_envs=1, device="cpu", cache_dir=root, **extra)
+        obs, _ = envs.reset(seed=0)
+        dim = observation_dim(kw["family"], 16 if kw["vision"] else 0)
+        assert obs.shape == (1, dim) and obs.dtype == np.float32, name
+        obs, reward, terminated, truncated, _ = envs.step(envs.action_space.sample())
+        assert obs.shape == (1, dim) and np.isfinite(obs).all() and np.isfinite(reward).all(), name
+        assert envs.action_space.shape == (1, kw["action_dim"]) and not terminated.any(), name
+        envs.close()
