@@ -142,19 +142,16 @@ def main(argv=None) -> int:
                                        geometry=args.geometry, reference=prior.get("reference", "gmr") if prior else args.kmp_reference,
                                        **{k: prior[k] for k in ("lam", "beta", "l") if k in prior})
         action_path = KGRLActionPath(tables, env, reach_floor=1e-3 * prior.get("reach_floor_mm", 0.0))
-    if payload is not None and "ppo" in payload["meta"]:  # run.py --method ppo / kgrl_ppo
-        from vkgrl_newton.agents.ppo import PPOAgent
-
+    if payload is not None:
         meta = payload["meta"]
-        agent = PPOAgent(env, meta["ppo"], device=str(env.tdev))
-        agent.load_state_dict(payload["agent"])
-        policy = AgentPolicy(agent, action_path, time_obs=meta["time_obs"])
-    elif payload is not None:
-        from vkgrl_newton.agents.sac import SAC, SACConfig
+        if "ppo" in meta:  # run.py --method ppo / kgrl_ppo
+            from vkgrl_newton.agents.ppo import PPOAgent
 
-        meta = payload["meta"]
-        sac_cfg = SACConfig(**meta["sac"])
-        agent = SAC(meta["obs_dim"], meta["action_dim"], sac_cfg, device=env.tdev, seed=args.seed)
+            agent = PPOAgent(env, meta["ppo"], device=str(env.tdev))
+        else:
+            from vkgrl_newton.agents.sac import SAC, SACConfig
+
+            agent = SAC(meta["obs_dim"], meta["action_dim"], SACConfig(**meta["sac"]), device=env.tdev, seed=args.seed)
         agent.load_state_dict(payload["agent"])
         policy = AgentPolicy(agent, action_path, time_obs=meta["time_obs"])
     else:

@@ -293,7 +293,7 @@ def main(argv=None) -> int:
         for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every, eval_episodes, eval_seed
             if name not in given:
                 setattr(args, name, value)
-        if uses_ppo(args.method or ""):
+        if uses_ppo(args.method):
             if not args.ppo:
                 args.ppo_cfg = meta.get("ppo")
         elif not args.sac and "sac" in meta:  # (a PPO run resumed as a SAC method: check_meta names it below)
@@ -327,7 +327,8 @@ def main(argv=None) -> int:
                 ap.error(f"{flag} is for the SAC methods (sac, kgrl, vision_sac, vision_kgrl), not {args.method!r}")
         try:
             args.ppo_overrides = {**METHOD_PPO_DEFAULTS.get(args.method, {}), **parse_ppo_overrides(args.ppo)}
-            for key in set(args.ppo_overrides) & set(PPO_RUNNER_ONLY):
+            if runner_only := sorted(set(args.ppo_overrides) & set(PPO_RUNNER_ONLY)):
+                key = runner_only[0]
                 raise ValueError(f"{key} is for rsl-rl's OnPolicyRunner, not run.py's loop ({PPO_RUNNER_ONLY[key]})")
             ppo_train_cfg(args.task, args.env, 1, **args.ppo_overrides)  # checked now; sized below
         except ValueError as e:
@@ -794,7 +795,9 @@ def ppo_loop(loop: Loop, payload: dict | None) -> int | None:
                     (obs, rewards, dones, extras), dt = loop.timed_step(actions.to(env.tdev))
                     loop.env_time += dt
                     obs, rewards, dones = obs.to(agent.device), rewards.to(agent.device), dones.to(agent.device)
-                    if check_nan is not None:
+                    # one host read for the NaN test (rsl-rl's check_nan reads each tensor), its message on a hit
+                    if check_nan is not None and bool(torch.stack(
+                            [torch.isnan(v).any() for v in (*obs.values(), rewards)]).any()):
                         check_nan(obs, rewards, dones)
                     # episodes end by time-out (extras["time_outs"]: PPO bootstraps them) or by a blow-up
                     # (the env reset and counted that world; PPO takes it as terminal)
