@@ -42,6 +42,8 @@ RUN_PY_CASES = [
     (["--kmp-reference", "empirical", "--method", "sac"], "--kmp-reference is for the kgrl methods"),
     (["--kgrl-reach-floor", "3", "--method", "sac"], "--kgrl-reach-floor is for the kgrl methods"),
     (["--kgrl-reach-floor", "nan", "--method", "kgrl"], "--kgrl-reach-floor must be a number of mm in [0, 50]"),
+    (["--kgrl-reach-floor-z", "25", "--method", "sac"], "--kgrl-reach-floor-z is for the kgrl methods"),
+    (["--kgrl-reach-floor-z", "-1", "--method", "kgrl"], "--kgrl-reach-floor-z must be a number of mm in [0, 50]"),
     (["--seed", "-1"], "--seed -1: must be in [0, 2**32)"),
     (["--eval-episodes", "-1"], "--eval-episodes -1: must be >= 0"),
     (["--label", "a b"], "--label 'a b': 1-40 characters"),

@@ -134,6 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="KGRL: a saturated action moves the x and y command at least MM mm at every step (default 0: "
                          "the thesis's null space, ~1 mm late in PegInsert; a deviation, see kmp.tables.with_reach_floor "
                          "and docs/benchmarks.md)")
+    ap.add_argument("--kgrl-reach-floor-z", type=float, default=None, metavar="MM",
+                    help="KGRL: likewise for z (default 0: the thesis's, ~2 mm late in PegInsert, while the prior "
+                         "presses a blocked peg ~20 mm into the face; a deviation, see docs/benchmarks.md)")
     ap.add_argument("--vae", type=Path, default=None,
                     help="vision methods: your own trained vae.pt (train/train_vae.py) instead of the cached one")
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
@@ -354,11 +357,13 @@ def main(argv=None) -> int:
                  f"(kgrl, vision_kgrl), not {args.method!r}")
     if args.kmp_reference is not None and not uses_kmp(args.method):
         ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
-    if args.kgrl_reach_floor is not None:
+    for flag, value in (("--kgrl-reach-floor", args.kgrl_reach_floor), ("--kgrl-reach-floor-z", args.kgrl_reach_floor_z)):
+        if value is None:
+            continue
         if not uses_kmp(args.method):
-            ap.error(f"--kgrl-reach-floor is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
-        if not (math.isfinite(args.kgrl_reach_floor) and 0 <= args.kgrl_reach_floor <= 50):
-            ap.error(f"--kgrl-reach-floor must be a number of mm in [0, 50], got {args.kgrl_reach_floor}")
+            ap.error(f"{flag} is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
+        if not (math.isfinite(value) and 0 <= value <= 50):
+            ap.error(f"{flag} must be a number of mm in [0, 50], got {value}")
     if args.vae is not None and not uses_vision(args.method):
         ap.error(f"--vae is for the vision methods (vision_sac, vision_kgrl), not {args.method!r}")
     if args.run_dir is not None and args.run_dir.exists() and not args.run_dir.is_dir():
@@ -484,18 +489,20 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
         kw = {"reference": args.kmp_reference or "gmr"}
-        reach_floor_mm = args.kgrl_reach_floor or 0.0
+        floors = {"reach_floor_mm": args.kgrl_reach_floor or 0.0, "reach_floor_z_mm": args.kgrl_reach_floor_z or 0.0}
         if payload is not None and "prior" in payload["meta"]:  # the KMP parameters it was fitted with
             kw = {k: payload["meta"]["prior"][k] for k in ("lam", "beta", "l")}
             kw["reference"] = payload["meta"]["prior"].get("reference", "gmr")
-            reach_floor_mm = payload["meta"]["prior"].get("reach_floor_mm", 0.0)
-            if args.kgrl_reach_floor is not None and args.kgrl_reach_floor != reach_floor_mm:
-                raise SystemExit(f"train/run.py: --resume: the run's --kgrl-reach-floor was {reach_floor_mm}, "
-                                 f"not {args.kgrl_reach_floor}")
+            for key, flag, given in (("reach_floor_mm", "--kgrl-reach-floor", args.kgrl_reach_floor),
+                                     ("reach_floor_z_mm", "--kgrl-reach-floor-z", args.kgrl_reach_floor_z)):
+                floors[key] = payload["meta"]["prior"].get(key, 0.0)
+                if given is not None and given != floors[key]:
+                    raise SystemExit(f"train/run.py: --resume: the run's {flag} was {floors[key]}, not {given}")
         tables, demos_path = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos,
                                                 num_demos=args.num_demos, device=args.device, geometry=args.geometry,
                                                 log=log, **kw)
-        action_path = KGRLActionPath(tables, env, reach_floor=1e-3 * reach_floor_mm)
+        action_path = KGRLActionPath(tables, env, reach_floor=1e-3 * floors["reach_floor_mm"],
+                                     reach_floor_z=1e-3 * floors["reach_floor_z_mm"])
     step_fn = action_path.step if action_path is not None else env.step
     time_obs = not args.no_time_obs
     obs_dim = args.obs_dim  # observation_dim(), the same function the env uses
@@ -511,7 +518,7 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     if action_path is not None:  # exactly what the run learns from: the prior's file and parameters
         from vkgrl_newton.agents.kgrl import prior_record
 
-        meta["prior"] = prior_record(action_path.tables, demos_path, reach_floor_mm=reach_floor_mm)
+        meta["prior"] = prior_record(action_path.tables, demos_path, **floors)
     if encoder is not None:
         from vkgrl_newton.cache import file_sha256
 

@@ -31,7 +31,7 @@ __all__ = ["KGRLActionPath", "load_or_make_prior", "demos_path_for", "prior_reco
 class KGRLActionPath:
     """Maps policy actions to absolute TCP pose commands through the KMP tables, batched over worlds."""
 
-    def __init__(self, tables: KMPTables, env, reach_floor: float = 0.0):
+    def __init__(self, tables: KMPTables, env, reach_floor: float = 0.0, reach_floor_z: float = 0.0):
         spec = env.task
         if tables.action_dim != env.num_actions:
             raise ValueError(f"KMP tables are {tables.action_dim}D, the env acts in {env.num_actions}D")
@@ -44,9 +44,12 @@ class KGRLActionPath:
         # zeta = scale * a, with a embedded in the 6D (x, y, z, rx, ry, rz) layout of the tables
         self.axes = [0, 1, 2, 5] if self.action_dim == 4 else [0, 1, 2, 3, 4, 5]
         scale = [spec.w_pos] * 3 + [spec.w_rot] * (self.action_dim - 3)
-        # reach_floor (m, x and y; 0: the thesis): kmp.tables.with_reach_floor, a deviation
-        self.reach_floor = float(reach_floor)
-        self.tables = with_reach_floor(tables, self.reach_floor, [spec.w_pos] * 3 + [spec.w_rot] * 3)
+        # reach_floor (m, x and y) and reach_floor_z (m, z); 0: the thesis. kmp.tables.with_reach_floor, a
+        # deviation: late in PegInsert the null space moves z ~2 mm while the prior presses a blocked peg
+        # ~20 mm into the hole's face, so a policy cannot lighten the press that keeps it from sliding
+        self.reach_floor, self.reach_floor_z = float(reach_floor), float(reach_floor_z)
+        w6 = [spec.w_pos] * 3 + [spec.w_rot] * 3
+        self.tables = with_reach_floor(with_reach_floor(tables, self.reach_floor, w6), self.reach_floor_z, w6, axes=(2,))
         tables = self.tables
         self.scale = torch.tensor(scale, dtype=torch.float32, device=tdev)
         self.zeta = torch.zeros(E, 6, dtype=torch.float32, device=tdev)
@@ -129,10 +132,10 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
     return tables, path
 
 
-def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0) -> dict:
+def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0, reach_floor_z_mm: float = 0.0) -> dict:
     """What a KGRL run records of its prior (checkpoint meta "prior"): the demonstration file and its
     sha256, the KMP parameters and the number of demonstrations (`cache.check_unchanged` checks the file),
-    and the action path's reach floor (mm) where there is one."""
+    and the action path's reach floors (mm, x-y and z) where there are."""
     record = {"demos": str(demos_path), "demos_sha256": file_sha256(demos_path), "lam": float(tables.lam),
               "beta": float(tables.beta), "l": float(tables.l),
               "num_demos": int(len(DemoSet.load(demos_path).demo_lengths))}
@@ -140,6 +143,8 @@ def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0) -> 
         record["reference"] = tables.reference
     if reach_floor_mm > 0:  # likewise absent for the thesis's null space
         record["reach_floor_mm"] = float(reach_floor_mm)
+    if reach_floor_z_mm > 0:
+        record["reach_floor_z_mm"] = float(reach_floor_z_mm)
     return record
 
 
