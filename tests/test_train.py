@@ -119,6 +119,96 @@ def test_kgrl_action_path_rejects_mismatched_tables(wp_cpu):
         KGRLActionPath(tables6, fake_env(3, 6)).pose(torch.zeros(2, 6))
 
 
+def test_spiral_offset_is_archimedean_at_the_given_speed():
+    """r = b theta (b = pitch / 2 pi), the angle is theta, a turn adds one pitch, and the exact arc length
+    s(theta) = b / 2 (theta sqrt(1 + theta^2) + asinh theta) advances by ~speed per step."""
+    from vkgrl_newton.agents.evaluation import spiral_offset
+
+    pitch, speed = 1.2e-3, 0.3e-3
+    b = pitch / (2 * math.pi)
+    k = torch.arange(0, 200, dtype=torch.float64)
+    off = spiral_offset(k, pitch, speed)
+    th = np.sqrt(2 * speed * k.numpy() / b)
+    np.testing.assert_allclose(off.norm(dim=-1).numpy(), b * th, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(np.cos(th) * b * th, off[:, 0].numpy(), rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(np.sin(th) * b * th, off[:, 1].numpy(), rtol=1e-12, atol=1e-18)
+    k_turn = torch.tensor([50.0, 0.0], dtype=torch.float64)  # k one turn later: theta + 2 pi
+    k_turn[1] = b * (math.sqrt(2 * speed * 50 / b) + 2 * math.pi) ** 2 / (2 * speed)
+    r = spiral_offset(k_turn, pitch, speed).norm(dim=-1)
+    assert abs(float(r[1] - r[0]) - pitch) < 1e-15
+    s = b / 2 * (th * np.sqrt(1 + th ** 2) + np.arcsinh(th))
+    per_step = np.diff(s)[50:]  # theta > 5: the approximation's error ~ 1 / (2 theta^2) < 2 %
+    assert np.all(np.abs(per_step / speed - 1) < 0.02)
+
+
+def test_kmp_search_policy_keeps_the_prior_until_blocked_then_searches_and_settles(wp_cpu):
+    """Three worlds of observations: one descending to the prior's seat (a = 0 throughout), one blocked
+    20 mm high from step 30 (a = 0 until n_min, then a light press and the spiral, checked against a
+    float64 computation of eta = m[n] + G[n] zeta), one that drops 0.5 mm while searching (x, y frozen,
+    z the prior's from then on). reset() starts over."""
+    from vkgrl_newton.agents.evaluation import KMPSearchPolicy, SearchParams, spiral_offset
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
+    env = fake_env(3, 4)
+    env.episode_length_buf = torch.zeros(3, dtype=torch.long)
+    p = SearchParams()
+    policy = KMPSearchPolicy.with_floors(tables, env, p)
+    mean = policy.path.tables.mean.numpy()  # the floored tables: m unchanged, G lifted
+    gain = policy.path.tables.gain.numpy()
+    w = np.array([env.task.w_pos] * 3)
+    seat = mean[-1, 2]
+    high = seat + 20e-3
+    drop_at = 75
+    N = env.max_episode_length
+    blocked_at = None
+    held = None
+    unclipped = settled = 0
+    for n in range(N):
+        env.episode_length_buf.fill_(n)
+        rel = np.zeros((3, 3))
+        rel[0] = mean[n, :3]  # follows the prior down
+        rel[1] = mean[n, :3] if n < 30 else [mean[100, 0], mean[100, 1], high]  # held over the face from 30
+        rel[2] = rel[1]
+        if n >= drop_at:
+            rel[2, 2] = high - 0.5e-3
+        obs = torch.zeros(3, 8)
+        obs[:, 0] = n / N
+        obs[:, 1:4] = torch.from_numpy(rel).float()
+        a = policy.actions(env, {"policy": obs}).double().numpy()
+        assert a.shape == (3, 4) and np.all(a[:, 3] == 0)  # yaw action 0
+        assert np.all(a[0] == 0)
+        if n < p.n_min:
+            assert np.all(a == 0), n
+            continue
+        blocked_at = blocked_at if blocked_at is not None else n
+        assert blocked_at == p.n_min  # stalled since step 30, high since 30
+        eta = mean[n, :3] + np.einsum("eij,ej->ei", gain[n][None, :3, :3], a[:, :3] * w)
+        rel32 = obs[:, 1:4].double().numpy()  # what the policy saw
+        centre = mean[100, :2]
+        sp = centre + spiral_offset(torch.tensor(float(n - blocked_at), dtype=torch.float64), 1.2e-3, 0.3e-3).numpy()
+        want1 = np.r_[sp + 1.0 * (sp - rel32[1, :2]), rel32[1, 2] - 1e-3]
+        if np.all(np.abs(a[1, :3]) < 1):
+            np.testing.assert_allclose(eta[1], want1, atol=1e-6)  # float32 obs and actions: ~1e-7 m
+            unclipped += 1
+        else:
+            assert np.all(np.sign(a[1, :3]) == np.sign(np.linalg.solve(gain[n][:3, :3], want1 - mean[n, :3])))
+        if n < drop_at:
+            np.testing.assert_array_equal(a[2], a[1])
+            continue
+        if held is None:  # the x, y wanted when it dropped, kept; z the prior's
+            held = sp + 1.0 * (sp - rel32[2, :2])
+        want2 = np.r_[held, mean[n, 2]]
+        if np.all(np.abs(a[2, :3]) < 1):
+            np.testing.assert_allclose(eta[2], want2, atol=1e-6)
+            settled += 1
+        else:
+            assert np.all(np.sign(a[2, :3]) == np.sign(np.linalg.solve(gain[n][:3, :3], want2 - mean[n, :3])))
+    assert unclipped >= 5 and settled >= 5, (unclipped, settled)  # both cases exercised, clipped and not
+    env.episode_length_buf.fill_(0)  # a new episode: the search starts over (no reset() call in training)
+    assert torch.equal(policy.actions(env, {"policy": torch.zeros(3, 8)}), torch.zeros(3, 4))
+    assert bool((policy.since == -1).all()) and not bool(policy.found.any())
+
+
 # ---------------------------------------------------------------------------------------------
 # train/run.py
 

@@ -7,7 +7,9 @@
 
 Policies: `scripted` (privileged demonstrator, absolute TCP poses through `step_pose`), `random`
 (uniform in [-1, 1]^D) and `zero` (both through the SAC action path `step`), `kmp_prior` (the
-KMP prior alone, zeta = 0, fitted as train/run.py does). `--checkpoint` evaluates a trained
+KMP prior alone, zeta = 0, fitted as train/run.py does), `kmp_search` (the prior plus a blind spiral
+search once the part is blocked, from the observation alone, in a null space with reach floors of its
+own: agents.evaluation.KMPSearchPolicy, a baseline of what the KGRL action space holds). `--checkpoint` evaluates a trained
 agent deterministically; task, method, family, action space and time ablation come from the
 checkpoint. Metrics per episode (all worlds end together): success at the episode's last step
 (`success_rate`), success at any step (`success_rate_any`), mean contact force (thesis eq. 6.1,
@@ -34,7 +36,7 @@ from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, GEOMETRIES, SOLVERS, TASKS, geometry_error  # noqa: E402
 
-POLICIES = ("scripted", "random", "zero", "kmp_prior")
+POLICIES = ("scripted", "random", "zero", "kmp_prior", "kmp_search")
 
 
 def main(argv=None) -> int:
@@ -105,8 +107,8 @@ def main(argv=None) -> int:
 
     import torch
 
-    from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, RandomPolicy, ScriptedPolicy,
-                                                ZeroPolicy, evaluate, write_video)
+    from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, KMPSearchPolicy, RandomPolicy,
+                                                ScriptedPolicy, ZeroPolicy, evaluate, write_video)
     from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
     from vkgrl_newton.sim.scene import SimConfig
 
@@ -134,7 +136,7 @@ def main(argv=None) -> int:
 
         env.attach_vision(CameraLatent(env, encoder))
     action_path = None
-    if args.policy in ("kmp_prior", "kgrl", "vision_kgrl", "kgrl_ppo"):
+    if args.policy in ("kmp_prior", "kmp_search", "kgrl", "vision_kgrl", "kgrl_ppo"):
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
         prior = payload["meta"].get("prior", {}) if payload is not None else {}
@@ -157,7 +159,9 @@ def main(argv=None) -> int:
         policy = AgentPolicy(agent, action_path, time_obs=meta["time_obs"])
     else:
         policy = {"scripted": lambda: ScriptedPolicy(seed=args.seed), "random": lambda: RandomPolicy(seed=args.seed),
-                  "zero": ZeroPolicy, "kmp_prior": lambda: KMPPriorPolicy(action_path)}[args.policy]()
+                  "zero": ZeroPolicy, "kmp_prior": lambda: KMPPriorPolicy(action_path),
+                  # its own floored action path over the same tables (SearchParams' reach floors)
+                  "kmp_search": lambda: KMPSearchPolicy.with_floors(tables, env)}[args.policy]()
 
     frames = camera = None
     if args.video is not None:

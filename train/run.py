@@ -352,6 +352,8 @@ def main(argv=None) -> int:
         except ValueError as e:
             ap.error(f"--sac: {e}")
     prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(checked, f, None)]
+    if getattr(checked, "prior_rollouts_policy", "prior") != "prior":
+        prior_only.append("prior_rollouts_policy")
     if prior_only and not uses_kmp(args.method):
         ap.error(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl methods "
                  f"(kgrl, vision_kgrl), not {args.method!r}")
@@ -553,9 +555,14 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     curves = CurveWriter(run_dir, resume_at=counters["transitions"] if payload else None)
     bar = tqdm(total=args.total_steps, initial=counters["transitions"], unit="tr", disable=args.no_progress,
                desc=f"{args.method} {args.task} {args.env} {args.action_dim}D")
+    rollout_policy = None
+    if getattr(args.sac_config, "prior_rollouts_policy", "prior") == "search":
+        from vkgrl_newton.agents.evaluation import KMPSearchPolicy
+
+        rollout_policy = KMPSearchPolicy(action_path)  # within the run's own reach floors
     loop = Loop(args=args, env=env, step_fn=step_fn, agent=agent, counters=counters, writer=writer, curves=curves,
                 bar=bar, checkpoint=checkpoint, ckpt_path=ckpt_path, log=log, time_obs=time_obs, env_steps0=counters["env_steps"],
-                grad0=agent.num_updates)
+                grad0=agent.num_updates, rollout_policy=rollout_policy)
     rc = (ppo_loop if uses_ppo(args.method) else sac_loop)(loop, payload)
     if rc is not None:  # stopped by a signal: checkpointed, nothing evaluated
         return rc
@@ -615,12 +622,14 @@ class Loop:
     (A plain class: tests load this file as a module outside sys.modules, where a dataclass fails.)"""
 
     def __init__(self, *, args, env, step_fn, agent, counters: dict, writer, curves: CurveWriter, bar, checkpoint,
-                 ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int):
+                 ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int, rollout_policy=None):
         self.args, self.env, self.agent, self.counters = args, env, agent, counters
         self.step_fn = step_fn  # env.step, or the KGRL action path's step
         self.writer, self.curves, self.bar, self.log = writer, curves, bar, log
         self.checkpoint = checkpoint  # checkpoint(pending_update=False, snapshot=None)
         self.ckpt_path, self.time_obs = ckpt_path, time_obs
+        # acts instead of the agent in its first prior_rollouts transitions (SACConfig.prior_rollouts_policy)
+        self.rollout_policy = rollout_policy
         self.env_steps0, self.grad0 = env_steps0, grad0  # where this session's throughput counts from
         self.env_time = self.update_time = 0.0
         self.t_session = time.perf_counter()
@@ -720,6 +729,8 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
         while counters["transitions"] < args.total_steps:
             x = policy_observation(obs, loop.time_obs)
             a = agent.explore(x)
+            if loop.rollout_policy is not None and agent.num_transitions < agent.cfg.prior_rollouts:
+                a = loop.rollout_policy.actions(env, obs)
             if pool is not None:
                 future = pool.submit(loop.timed_step, a)
                 if pending_update:  # the update due after the previous step, while this one runs

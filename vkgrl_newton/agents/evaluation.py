@@ -7,6 +7,8 @@ entry point (`env.step` for the SAC path, `env.step_pose` for KGRL and the scrip
 - `ScriptedPolicy`: the privileged demonstrator (envs/scripted.py).
 - `RandomPolicy`, `ZeroPolicy`: uniform in [-1, 1]^D / zeros, through the SAC path.
 - `KMPPriorPolicy`: the KMP prior alone, zeta = 0 (KGRL with a silent policy).
+- `KMPSearchPolicy`: the prior plus a blind spiral search once the part is blocked, in a floored null
+  space, from the observation alone (issue 28's baseline of what the KGRL action space holds).
 - `AgentPolicy`: a trained SAC agent, deterministic (tanh of the mean), on its method's path.
 
 `evaluate(env, policy, episodes)` runs whole episodes (all worlds together) and returns the
@@ -16,6 +18,7 @@ metrics of train/evaluate.py's JSON; `record_video` renders the task camera alon
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 
 import math
 import time
@@ -24,8 +27,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-__all__ = ["Policy", "ScriptedPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "AgentPolicy", "evaluate",
-           "policy_observation"]
+__all__ = ["Policy", "ScriptedPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "KMPSearchPolicy",
+           "SearchParams", "spiral_offset", "AgentPolicy", "evaluate", "policy_observation"]
 
 
 def policy_observation(obs, time_obs: bool = True) -> torch.Tensor:
@@ -87,6 +90,113 @@ class KMPPriorPolicy(Policy):
 
     def step(self, env, obs):
         return self.path.step(torch.zeros(env.num_envs, env.num_actions, device=env.tdev))
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """KMPSearchPolicy's settings (mm, control steps). Defaults: session 15's `arch_settle`
+    (docs/benchmarks.md, "the gap is information"), +0.203 over the prior on PegInsert Factory 4D."""
+
+    blocked_mm: float = 15.0  # blocked: the TCP this far above the prior's final height ...
+    stall_steps: int = 15  # ... having descended less than stall_mm over this many steps ...
+    stall_mm: float = 0.3
+    n_min: int = 60  # ... at this step or later
+    press_mm: float = 1.0  # searching: z commanded this far below the TCP (the prior presses ~20 mm)
+    pitch_mm: float = 1.2  # the spiral's growth per turn: under twice the chamfer's catch (~0.8 mm a side)
+    speed_mm: float = 0.3  # along the spiral, per control step
+    track: float = 1.0  # the command leads the wanted point by this times the TCP's lag
+    settle_mm: float = 0.3  # dropped this far: x, y frozen, z back to the prior's
+    reach_floor_mm: float = 4.0  # KMPSearchPolicy.with_floors: the null space's reach floors
+    reach_floor_z_mm: float = 25.0  # (kmp.tables.with_reach_floor) on x, y and z, so that the search fits in it
+
+
+def spiral_offset(k: torch.Tensor, pitch: float, speed: float) -> torch.Tensor:
+    """(..., 2) offset (m) of an Archimedean spiral r = b theta (b = pitch / 2 pi) after k steps at
+    `speed` m per step along it, using arc ~ b theta^2 / 2 (exact as theta grows; the first turn runs
+    a little fast)."""
+    b = pitch / (2 * math.pi)
+    th = torch.sqrt(2 * speed * k / b)
+    return b * th.unsqueeze(-1) * torch.stack((torch.cos(th), torch.sin(th)), -1)
+
+
+class KMPSearchPolicy(Policy):
+    """The KMP prior (a = 0) until the held part is blocked, then a blind search in the null space.
+
+    It reads only what a proprioceptive KGRL policy observes: the TCP relative to the observed target
+    frame and the episode's step. Blocked: the TCP stays `blocked_mm` above the prior's final height and
+    stalls (SearchParams). From then on, per world: z is commanded `press_mm` below the TCP (a light
+    press: the prior's ~20 mm press keeps a resting peg from sliding), and x, y follow an Archimedean
+    spiral around where the TCP was blocked; once the TCP drops `settle_mm`, x, y are frozen and z goes
+    back to the prior's. The wanted eta is reached through the null space on x, y, z with the yaw action
+    0 (solving for yaw too swings it to +-1: G couples it with x, y), clipped to the action path's
+    reach: `with_floors` gives it floors of its own (a deviation from the thesis's null space; a = 0 is
+    still the prior). Per-world state restarts where an episode starts (step 0), so it also acts in
+    training (SACConfig.prior_rollouts_policy "search")."""
+
+    def __init__(self, action_path, params: SearchParams | None = None):
+        self.params = params or SearchParams()
+        self.path = action_path
+        env = action_path.env
+        dev = env.tdev
+        self.mean = self.path.tables.mean.to(dev, torch.float64)  # (N + 1, 6): eta = m[n] + G[n] zeta
+        self.gain3 = self.path.tables.gain.to(dev, torch.float64)[:, :3, :3]
+        self.scale3 = self.path.scale[:3].to(torch.float64)
+        self.seat_z = float(self.mean[-1, 2])  # the prior's final TCP height over the target frame (seated)
+        E = env.num_envs
+        self.z_hist = torch.zeros(E, env.max_episode_length + 1, dtype=torch.float64, device=dev)
+        self.since = torch.full((E,), -1, dtype=torch.long, device=dev)  # step found blocked (-1: not yet)
+        self.z_blocked = torch.zeros(E, dtype=torch.float64, device=dev)
+        self.centre = torch.zeros(E, 2, dtype=torch.float64, device=dev)
+        self.found = torch.zeros(E, dtype=torch.bool, device=dev)  # dropped while searching
+        self.held = torch.zeros(E, 3, dtype=torch.float64, device=dev)  # the x, y, z wanted when it dropped
+
+    @classmethod
+    def with_floors(cls, tables, env, params: SearchParams | None = None) -> "KMPSearchPolicy":
+        """The search in an action path over `tables` with the params' reach floors (train/evaluate.py)."""
+        from .kgrl import KGRLActionPath
+
+        p = params or SearchParams()
+        return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
+                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p)
+
+    def reset(self, env) -> None:
+        self.since.fill_(-1)
+        self.found.fill_(False)
+
+    def actions(self, env, obs) -> torch.Tensor:
+        """(E, D) actions in [-1, 1] for this control step (the KGRL action space)."""
+        p = self.params
+        rel = policy_observation(obs)[:, 1:4].to(torch.float64)  # TCP - observed target frame (m)
+        n = env.episode_length_buf.long()
+        start = n == 0  # a new episode in this world
+        self.since.masked_fill_(start, -1)
+        self.found.masked_fill_(start, False)
+        rows = torch.arange(rel.shape[0], device=rel.device)
+        self.z_hist[rows, n] = rel[:, 2]
+        stalled = (self.z_hist[rows, (n - p.stall_steps).clamp(min=0)] - rel[:, 2]) < p.stall_mm * 1e-3
+        high = (rel[:, 2] - self.seat_z) > p.blocked_mm * 1e-3
+        new = (self.since < 0) & (n >= max(p.n_min, p.stall_steps)) & stalled & high
+        self.since = torch.where(new, n, self.since)
+        self.z_blocked = torch.where(new, rel[:, 2], self.z_blocked)
+        self.centre = torch.where(new.unsqueeze(-1), rel[:, :2], self.centre)
+        on = self.since >= 0
+        a = torch.zeros(rel.shape[0], env.num_actions, device=env.tdev)
+        if not bool(on.any()):
+            return a
+        step = n.clamp(max=self.mean.shape[0] - 1)
+        m = self.mean[step, :3]
+        wanted = self.centre + spiral_offset((n - self.since).to(torch.float64), p.pitch_mm * 1e-3, p.speed_mm * 1e-3)
+        want = torch.cat([wanted + p.track * (wanted - rel[:, :2]), (rel[:, 2] - p.press_mm * 1e-3).unsqueeze(-1)], -1)
+        drop = on & ~self.found & ((self.z_blocked - rel[:, 2]) > p.settle_mm * 1e-3)
+        self.held = torch.where(drop.unsqueeze(-1), want, self.held)
+        self.found |= drop
+        want = torch.where(self.found.unsqueeze(-1), torch.cat([self.held[:, :2], m[:, 2:]], -1), want)
+        zeta = torch.linalg.solve(self.gain3[step], (want - m).unsqueeze(-1)).squeeze(-1)  # (E, 3): x, y, z
+        a[:, :3] = torch.where(on.unsqueeze(-1), (zeta / self.scale3).clamp(-1.0, 1.0), 0.0).to(a.dtype)
+        return a
+
+    def step(self, env, obs):
+        return self.path.step(self.actions(env, obs))
 
 
 class AgentPolicy(Policy):

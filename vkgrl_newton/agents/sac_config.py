@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 WARMUPS = ("uniform", "policy")
 LOG_STD_BOUNDS = ("clamp", "tanh")
+ROLLOUT_POLICIES = ("prior", "search")  # SACConfig.prior_rollouts_policy
 ACTIVATION_NAMES = ("elu", "relu", "tanh")
 MATMUL_BACKENDS = ("onednn", "torch")  # agents/dense.py
 
@@ -81,6 +82,11 @@ class SACConfig:
     # counted in the run's transitions like any other) and, with prior_ratio > 0, are kept in the
     # prior buffer for good: a critic that always sees the prior's actions knows their value.
     prior_rollouts: int = 0
+    # Who acts in those first transitions: "prior" (a = 0, as above) or "search" (KGRL: the prior plus
+    # a blind spiral search once the part is blocked, agents.evaluation.KMPSearchPolicy, through the
+    # run's own action path; it needs z reach, --kgrl-reach-floor-z). A deviation: scripted data beyond
+    # the demonstrations, so that the buffer holds blocked parts that were searched for and seated.
+    prior_rollouts_policy: str = "prior"
     # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel) or
     # "torch" (MKL; its AVX2 path on AMD). Not a hyperparameter: float32 last bits differ.
     cpu_matmul: str = "onednn"
@@ -95,6 +101,12 @@ class SACConfig:
             raise ValueError(f"SACConfig.activation={self.activation!r}; allowed: {sorted(ACTIVATION_NAMES)}")
         if self.prior_rollouts < 0:
             raise ValueError(f"SACConfig.prior_rollouts={self.prior_rollouts!r} must be >= 0")
+        if self.prior_rollouts_policy not in ROLLOUT_POLICIES:
+            raise ValueError(f"SACConfig.prior_rollouts_policy={self.prior_rollouts_policy!r}; allowed: "
+                             f"{list(ROLLOUT_POLICIES)}")
+        if self.prior_rollouts_policy != "prior" and self.prior_rollouts == 0:
+            raise ValueError(f"SACConfig.prior_rollouts_policy={self.prior_rollouts_policy!r} acts in the first "
+                             f"prior_rollouts transitions: give prior_rollouts > 0")
         if self.prior_ratio > 0 and self.prior_rollouts == 0:
             raise ValueError("SACConfig.prior_ratio > 0 samples the prior buffer: give prior_rollouts > 0 to fill it")
         for name in ("buffer_size", "batch_size", "train_every", "gradient_steps", "n_critics", "policy_delay"):
