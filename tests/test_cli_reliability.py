@@ -48,6 +48,8 @@ RUN_PY_CASES = [
     (["--sac", "prior_rollouts_policy=search"], "prior_rollouts_policy='search' acts in the first prior_rollouts"),
     (["--sac", "prior_rollouts=480", "--sac", "prior_rollouts_policy=search", "--method", "sac"],
      "--sac prior_rollouts: acts with or learns from the KMP prior"),
+    (["--sac", "prior_rollouts=480", "--sac", "prior_rollouts_policy=search", "--method", "kgrl"],
+     "--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs z reach"),
     (["--seed", "-1"], "--seed -1: must be in [0, 2**32)"),
     (["--eval-episodes", "-1"], "--eval-episodes -1: must be >= 0"),
     (["--label", "a b"], "--label 'a b': 1-40 characters"),

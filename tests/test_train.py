@@ -119,6 +119,25 @@ def test_kgrl_action_path_rejects_mismatched_tables(wp_cpu):
         KGRLActionPath(tables6, fake_env(3, 6)).pose(torch.zeros(2, 6))
 
 
+def test_kgrl_action_path_applies_both_reach_floors(wp_cpu):
+    """reach_floor (x, y) and reach_floor_z (z) lift those axes' reach to the floors (brute force over the
+    action corners is test_prior_learning's); a = 0 still commands the prior's mean."""
+    from vkgrl_newton.agents.kgrl import KGRLActionPath
+    from vkgrl_newton.kmp.tables import null_space_reach
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
+    env = fake_env(5, 4)
+    w6 = [env.task.w_pos] * 3 + [env.task.w_rot] * 3
+    path = KGRLActionPath(tables, env, reach_floor=2e-3, reach_floor_z=10e-3)
+    before, after = null_space_reach(tables.gain, w6).numpy(), null_space_reach(path.tables.gain, w6).numpy()
+    assert (before[:, 2] < 10e-3).any() and (before[:, :2] < 2e-3).any()  # both floors bind somewhere
+    np.testing.assert_allclose(after[:, :2], np.maximum(before[:, :2], 2e-3), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(after[:, 2], np.maximum(before[:, 2], 10e-3), rtol=1e-9, atol=1e-15)
+    pos0, _ = path.pose(torch.zeros(5, 4))
+    n = env.step_index.long().clamp(max=tables.n_steps)
+    np.testing.assert_allclose(pos0.numpy(), (env.target_frame_pos_w + tables.mean[n, :3].float()).numpy(), atol=1e-6)
+
+
 def test_spiral_offset_is_archimedean_at_the_given_speed():
     """r = b theta (b = pitch / 2 pi), the angle is theta, a turn adds one pitch, and the exact arc length
     s(theta) = b / 2 (theta sqrt(1 + theta^2) + asinh theta) advances by ~speed per step."""
@@ -145,7 +164,7 @@ def test_kmp_search_policy_keeps_the_prior_until_blocked_then_searches_and_settl
     """Three worlds of observations: one descending to the prior's seat (a = 0 throughout), one blocked
     20 mm high from step 30 (a = 0 until n_min, then a light press and the spiral, checked against a
     float64 computation of eta = m[n] + G[n] zeta), one that drops 0.5 mm while searching (x, y frozen,
-    z the prior's from then on). reset() starts over."""
+    z the prior's from then on). A world whose episode restarts (step 0) starts over alone."""
     from vkgrl_newton.agents.evaluation import KMPSearchPolicy, SearchParams, spiral_offset
 
     tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
@@ -180,8 +199,11 @@ def test_kmp_search_policy_keeps_the_prior_until_blocked_then_searches_and_settl
         if n < p.n_min:
             assert np.all(a == 0), n
             continue
-        blocked_at = blocked_at if blocked_at is not None else n
-        assert blocked_at == p.n_min  # stalled since step 30, high since 30
+        if n == p.n_min:  # stalled and high since step 30: found blocked at the first step allowed
+            assert policy.since.tolist() == [-1, p.n_min, p.n_min] and not bool(policy.found.any())
+        if n == drop_at:
+            assert policy.found.tolist() == [False, False, True]
+        blocked_at = p.n_min
         eta = mean[n, :3] + np.einsum("eij,ej->ei", gain[n][None, :3, :3], a[:, :3] * w)
         rel32 = obs[:, 1:4].double().numpy()  # what the policy saw
         centre = mean[100, :2]
@@ -204,9 +226,12 @@ def test_kmp_search_policy_keeps_the_prior_until_blocked_then_searches_and_settl
         else:
             assert np.all(np.sign(a[2, :3]) == np.sign(np.linalg.solve(gain[n][:3, :3], want2 - mean[n, :3])))
     assert unclipped >= 5 and settled >= 5, (unclipped, settled)  # both cases exercised, clipped and not
-    env.episode_length_buf.fill_(0)  # a new episode: the search starts over (no reset() call in training)
-    assert torch.equal(policy.actions(env, {"policy": torch.zeros(3, 8)}), torch.zeros(3, 4))
-    assert bool((policy.since == -1).all()) and not bool(policy.found.any())
+    # world 2 alone starts a new episode (a blown-up world resets alone; no reset() call in training): only its
+    # search starts over, and the others keep theirs
+    env.episode_length_buf = torch.tensor([N - 1, N - 1, 0])
+    a = policy.actions(env, {"policy": obs})
+    assert policy.since.tolist() == [-1, p.n_min, -1] and policy.found.tolist() == [False, False, False]
+    assert torch.equal(a[2], torch.zeros(4)) and bool((a[1] != 0).any())
 
 
 # ---------------------------------------------------------------------------------------------

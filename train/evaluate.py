@@ -62,10 +62,10 @@ def main(argv=None) -> int:
                     help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes, SDFs on CUDA); "
                          "default: the checkpoint's, else primitives (given, it evaluates a policy on the other one)")
     ap.add_argument("--no-time-obs", action="store_true", help="kmp_prior / checkpoint: policy input without time")
-    ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"), help="kmp_prior: demonstrations, tables")
-    ap.add_argument("--demos", type=Path, default=None, help="kmp_prior: your own demonstrations")
+    ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"), help="kmp_prior, kmp_search: demonstrations, tables")
+    ap.add_argument("--demos", type=Path, default=None, help="kmp_prior, kmp_search: your own demonstrations")
     ap.add_argument("--kmp-reference", default="gmr", choices=("gmr", "empirical"),
-                    help="kmp_prior: the KMP's reference distribution (as train/run.py; a checkpoint's own wins)")
+                    help="kmp_prior, kmp_search: the KMP's reference distribution (as train/run.py; a checkpoint's own wins)")
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
     ap.add_argument("--video", type=Path, default=None, help="GIF of the task camera (first 4 worlds, tiled)")
     args = parse_cli(ap, argv, device=True)
@@ -175,6 +175,10 @@ def main(argv=None) -> int:
                   num_envs=args.num_envs, device=env.device, solver=args.solver, geometry=args.geometry, seed=args.seed,
                   eval_seed=args.eval_seed,
                   time_obs=not args.no_time_obs, checkpoint=str(args.checkpoint) if args.checkpoint else None)
+    if isinstance(policy, KMPSearchPolicy):  # what "kmp_search" meant for this result (its settings may change)
+        import dataclasses
+
+        result["search"] = dataclasses.asdict(policy.params)
     print(strict_json({k: v for k, v in result.items() if k != "per_episode"}, indent=2))
     print(f"{result['episodes']} episodes: {args.num_envs} worlds x {args.episodes} per world")
     if args.json is not None:

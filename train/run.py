@@ -359,6 +359,10 @@ def main(argv=None) -> int:
                  f"(kgrl, vision_kgrl), not {args.method!r}")
     if args.kmp_reference is not None and not uses_kmp(args.method):
         ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
+    if (getattr(checked, "prior_rollouts_policy", "prior") == "search" and uses_kmp(args.method) and not args.resume
+            and not args.kgrl_reach_floor_z):  # (a resumed run keeps the floors its checkpoint records)
+        ap.error("--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs "
+                 "z reach, give --kgrl-reach-floor-z MM (e.g. 25; the thesis's null space reaches ~2 mm there)")
     for flag, value in (("--kgrl-reach-floor", args.kgrl_reach_floor), ("--kgrl-reach-floor-z", args.kgrl_reach_floor_z)):
         if value is None:
             continue
