@@ -347,7 +347,7 @@ def test_reach_floor_lifts_short_axes_by_brute_force_over_the_action_corners():
     assert (before[:, :2] < floor).any() and (before[:, :2] > floor).any()  # both cases are exercised
     np.testing.assert_array_equal(after[:, 2:], before[:, 2:])
     assert torch.equal(lifted.mean, tables.mean) and with_reach_floor(tables, 0.0, w) is tables
-    # z alone (--kgrl-reach-floor-z): z lifted, x, y and the rest untouched
+    # z alone (--kgrl-reach-floor-z): z lifted, x, y and the rest untouched (the float64 bounds above)
     floor_z = 0.5 * float(before[:, 2].max())  # a floor some rows pass and some do not
     after_z = brute_reach(with_reach_floor(tables, floor_z, w, axes=(2,)).gain)
     np.testing.assert_allclose(after_z[:, 2], np.maximum(before[:, 2], floor_z), rtol=1e-9, atol=1e-15)

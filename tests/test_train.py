@@ -130,11 +130,13 @@ def test_kgrl_action_path_applies_both_reach_floors(wp_cpu):
     w6 = [env.task.w_pos] * 3 + [env.task.w_rot] * 3
     path = KGRLActionPath(tables, env, reach_floor=2e-3, reach_floor_z=10e-3)
     before, after = null_space_reach(tables.gain, w6).numpy(), null_space_reach(path.tables.gain, w6).numpy()
+    # float64 tables: as test_prior_learning's brute-force floor test, a few ulp (~1e-15 relative) per reach
     assert (before[:, 2] < 10e-3).any() and (before[:, :2] < 2e-3).any()  # both floors bind somewhere
     np.testing.assert_allclose(after[:, :2], np.maximum(before[:, :2], 2e-3), rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(after[:, 2], np.maximum(before[:, 2], 10e-3), rtol=1e-9, atol=1e-15)
     pos0, _ = path.pose(torch.zeros(5, 4))
     n = env.step_index.long().clamp(max=tables.n_steps)
+    # float32 kernel: positions < 1 m (ulp 6e-8) through a few additions; atol 1e-6 as the float64 reference test above
     np.testing.assert_allclose(pos0.numpy(), (env.target_frame_pos_w + tables.mean[n, :3].float()).numpy(), atol=1e-6)
 
 
@@ -210,7 +212,9 @@ def test_kmp_search_policy_keeps_the_prior_until_blocked_then_searches_and_settl
         sp = centre + spiral_offset(torch.tensor(float(n - blocked_at), dtype=torch.float64), 1.2e-3, 0.3e-3).numpy()
         want1 = np.r_[sp + 1.0 * (sp - rel32[1, :2]), rel32[1, 2] - 1e-3]
         if np.all(np.abs(a[1, :3]) < 1):
-            np.testing.assert_allclose(eta[1], want1, atol=1e-6)  # float32 obs and actions: ~1e-7 m
+            # the policy rounds obs (|rel| < 0.05 m) and actions (|G w a| < 0.03 m) to float32: ~6e-8 relative,
+            # ~5e-9 m; atol 1e-6 m leaves two orders of margin on either CPU
+            np.testing.assert_allclose(eta[1], want1, atol=1e-6)
             unclipped += 1
         else:
             assert np.all(np.sign(a[1, :3]) == np.sign(np.linalg.solve(gain[n][:3, :3], want1 - mean[n, :3])))
@@ -221,7 +225,7 @@ def test_kmp_search_policy_keeps_the_prior_until_blocked_then_searches_and_settl
             held = sp + 1.0 * (sp - rel32[2, :2])
         want2 = np.r_[held, mean[n, 2]]
         if np.all(np.abs(a[2, :3]) < 1):
-            np.testing.assert_allclose(eta[2], want2, atol=1e-6)
+            np.testing.assert_allclose(eta[2], want2, atol=1e-6)  # the same float32 roundings as above
             settled += 1
         else:
             assert np.all(np.sign(a[2, :3]) == np.sign(np.linalg.solve(gain[n][:3, :3], want2 - mean[n, :3])))

@@ -143,8 +143,9 @@ def main(argv=None) -> int:
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device,
                                        geometry=args.geometry, reference=prior.get("reference", "gmr") if prior else args.kmp_reference,
                                        **{k: prior[k] for k in ("lam", "beta", "l") if k in prior})
-        action_path = KGRLActionPath(tables, env, reach_floor=1e-3 * prior.get("reach_floor_mm", 0.0),
-                                     reach_floor_z=1e-3 * prior.get("reach_floor_z_mm", 0.0))
+        if args.policy != "kmp_search":  # (the search builds its own, with its reach floors)
+            action_path = KGRLActionPath(tables, env, reach_floor=1e-3 * prior.get("reach_floor_mm", 0.0),
+                                         reach_floor_z=1e-3 * prior.get("reach_floor_z_mm", 0.0))
     if payload is not None:
         meta = payload["meta"]
         if "ppo" in meta:  # run.py --method ppo / kgrl_ppo
@@ -160,7 +161,6 @@ def main(argv=None) -> int:
     else:
         policy = {"scripted": lambda: ScriptedPolicy(seed=args.seed), "random": lambda: RandomPolicy(seed=args.seed),
                   "zero": ZeroPolicy, "kmp_prior": lambda: KMPPriorPolicy(action_path),
-                  # its own floored action path over the same tables (SearchParams' reach floors)
                   "kmp_search": lambda: KMPSearchPolicy.with_floors(tables, env)}[args.policy]()
 
     frames = camera = None

@@ -148,7 +148,7 @@ class KMPSearchPolicy(Policy):
         self.z_blocked = torch.zeros(E, dtype=torch.float64, device=dev)
         self.centre = torch.zeros(E, 2, dtype=torch.float64, device=dev)
         self.found = torch.zeros(E, dtype=torch.bool, device=dev)  # dropped while searching
-        self.held = torch.zeros(E, 3, dtype=torch.float64, device=dev)  # the x, y, z wanted when it dropped
+        self.held = torch.zeros(E, 2, dtype=torch.float64, device=dev)  # the x, y wanted when it dropped
 
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None) -> "KMPSearchPolicy":
@@ -158,10 +158,6 @@ class KMPSearchPolicy(Policy):
         p = params or SearchParams()
         return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
                                   reach_floor_z=1e-3 * p.reach_floor_z_mm), p)
-
-    def reset(self, env) -> None:
-        self.since.fill_(-1)
-        self.found.fill_(False)
 
     def actions(self, env, obs) -> torch.Tensor:
         """(E, D) actions in [-1, 1] for this control step (the KGRL action space)."""
@@ -179,19 +175,17 @@ class KMPSearchPolicy(Policy):
         self.since = torch.where(new, n, self.since)
         self.z_blocked = torch.where(new, rel[:, 2], self.z_blocked)
         self.centre = torch.where(new.unsqueeze(-1), rel[:, :2], self.centre)
-        on = self.since >= 0
-        a = torch.zeros(rel.shape[0], env.num_actions, device=env.tdev)
-        if not bool(on.any()):
-            return a
+        on = self.since >= 0  # (no early return when none is: that would read the host every step)
         step = n.clamp(max=self.mean.shape[0] - 1)
         m = self.mean[step, :3]
         wanted = self.centre + spiral_offset((n - self.since).to(torch.float64), p.pitch_mm * 1e-3, p.speed_mm * 1e-3)
         want = torch.cat([wanted + p.track * (wanted - rel[:, :2]), (rel[:, 2] - p.press_mm * 1e-3).unsqueeze(-1)], -1)
         drop = on & ~self.found & ((self.z_blocked - rel[:, 2]) > p.settle_mm * 1e-3)
-        self.held = torch.where(drop.unsqueeze(-1), want, self.held)
+        self.held = torch.where(drop.unsqueeze(-1), want[:, :2], self.held)
         self.found |= drop
-        want = torch.where(self.found.unsqueeze(-1), torch.cat([self.held[:, :2], m[:, 2:]], -1), want)
+        want = torch.where(self.found.unsqueeze(-1), torch.cat([self.held, m[:, 2:]], -1), want)
         zeta = torch.linalg.solve(self.gain3[step], (want - m).unsqueeze(-1)).squeeze(-1)  # (E, 3): x, y, z
+        a = torch.zeros(rel.shape[0], env.num_actions, device=env.tdev)
         a[:, :3] = torch.where(on.unsqueeze(-1), (zeta / self.scale3).clamp(-1.0, 1.0), 0.0).to(a.dtype)
         return a
 
