@@ -334,14 +334,51 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     from vkgrl_newton.cache import file_sha256
     from vkgrl_newton.kmp.prior import KMP_BETA, KMP_L, KMP_LAMBDA
 
+    # (the quick preset's recipe, reach_keep_prior: its reach floors in the prior's record)
     assert metrics["prior"] == {"demos": str(peg_demos_file), "demos_sha256": file_sha256(peg_demos_file),
-                                "lam": KMP_LAMBDA, "beta": KMP_BETA, "l": KMP_L, "num_demos": 8}
+                                "lam": KMP_LAMBDA, "beta": KMP_BETA, "l": KMP_L, "num_demos": 8,
+                                "reach_floor_mm": 3.0, "reach_floor_z_mm": 25.0}
     assert metrics["episodes"] == 2 and metrics["method"] == "kgrl"
-    sac = json.loads((run_dir / "config.json").read_text())["sac"]  # KGRL's own exploration defaults
-    assert (sac["warmup"], sac["actor_init_std"], sac["log_std_max"], sac["batch_size"]) == ("policy", 0.1, -1.2, 8)
+    config = json.loads((run_dir / "config.json").read_text())
+    sac = config["sac"]  # the recipe's SAC fields over the preset, TINY's over both
+    assert config["kgrl_recipe"] == "reach_keep_prior"
+    assert {k: sac[k] for k in run_py.KGRL_RECIPES["reach_keep_prior"]["sac"]} == \
+        run_py.KGRL_RECIPES["reach_keep_prior"]["sac"] and sac["batch_size"] == 8
+    assert (sac["warmup"], sac["actor_init_std"], sac["log_std_max"]) == ("policy", 0.1, -1.2)
     assert 0.0 <= metrics["success_rate"] <= 1.0 and metrics["mean_contact_force"] >= 0.0
     # the KMP tables were fitted beside the demonstrations and are reused
     assert peg_demos_file.with_name(peg_demos_file.stem + ".kmp4d.npz").exists()
+
+
+def test_the_search_acts_in_the_first_prior_rollouts_and_fills_their_buffer(run_py, wp_cpu, tmp_path, peg_demos_file,
+                                                                             monkeypatch):
+    """--sac prior_rollouts_policy=search through run.py's loop: the search's actions (here a marker
+    value in place of KMPSearchPolicy's, which tests/test_prior_learning.py checks on its own) are the
+    ones stepped and stored for exactly the first prior_rollouts transitions, the learner's after."""
+    from vkgrl_newton.agents import evaluation
+    from vkgrl_newton.agents.sac import SAC
+
+    marker, calls, stored = 0.25, [], []
+
+    def search_actions(self, env, obs):
+        calls.append(int(env.episode_length_buf[0]))
+        return torch.full((env.num_envs, 4), marker, device=env.tdev)
+
+    def add(self, obs, action, reward, next_obs, terminated, _add=SAC.add):
+        stored.append((self.num_transitions, action.clone(), len(self.prior_buffer)))
+        _add(self, obs, action, reward, next_obs, terminated)
+
+    monkeypatch.setattr(evaluation.KMPSearchPolicy, "actions", search_actions)
+    monkeypatch.setattr(SAC, "add", add)
+    run_dir = tmp_path / "search"
+    assert run_py.main(["--method", "kgrl", "--run-dir", str(run_dir), "--demos", str(peg_demos_file),
+                        "--total-steps", "16", "--eval-episodes", "0", *TINY, "--sac", "prior_rollouts=8",
+                        "--sac", "prior_rollouts_policy=search", "--sac", "prior_ratio=0.5"]) == 0
+    assert calls == [0, 1, 2, 3] and len(stored) == 8  # 2 worlds: the first 4 env steps searched, 4 the learner
+    for n, action, prior_rows in stored:
+        searched = n < 8
+        assert bool((action == marker).all()) == searched, (n, action)
+        assert prior_rows == min(n, 8)  # the prior buffer holds the search's transitions, and only those
 
 
 def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cpu, tmp_path, capsys):
@@ -355,10 +392,21 @@ def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cp
     recorded = file_sha256(demos)
     run_dir = tmp_path / "kgrl"
     assert run_py.main(["--method", "kgrl", "--run-dir", str(run_dir), "--demos", str(demos), "--total-steps", "8",
-                        "--eval-episodes", "0", *TINY]) == 0
+                        "--eval-episodes", "0", "--kgrl-recipe", "base", *TINY]) == 0
     ckpt = run_dir / "checkpoints" / "last.pt"
-    prior = load_checkpoint(ckpt)["meta"]["prior"]
+    meta = load_checkpoint(ckpt)["meta"]
+    prior = meta["prior"]
     assert prior["demos"] == str(demos) and prior["demos_sha256"] == recorded and prior["num_demos"] == 6
+    # the base recipe: the thesis's null space (no floors recorded) and its SAC fields; no recipe recorded,
+    # as in the runs made before recipes existed, which therefore resume as base
+    assert "reach_floor_mm" not in prior and "reach_floor_z_mm" not in prior and "kgrl_recipe" not in meta
+    assert (meta["sac"]["log_std_bound"], meta["sac"]["prior_anchor"], meta["sac"]["prior_rollouts"]) == \
+        ("clamp", False, 0)
+    # a resume under another recipe is refused, naming it
+    with pytest.raises(SystemExit) as exc:
+        run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress",
+                     "--kgrl-recipe", "reach_keep_prior"])
+    assert exc.value.code == 2 and "kgrl_recipe" in capsys.readouterr().err
 
     demos.unlink()
     synthetic_demos("PegInsert", 6, action_dim=6, seed=4).save(demos)  # other demonstrations, same name

@@ -29,7 +29,9 @@ the agent, its optimizers, normalizer and replay buffer, the RNG states and the 
 simulator starts fresh episodes (physics state is not checkpointed).
 
 Steps are env transitions summed over worlds: 16 worlds x 150 control steps = 2400 per episode.
-Defaults: preset `thesis` (Table 5.3, 128 worlds) on CUDA, `quick` (16 worlds) on CPU.
+Defaults: preset `thesis` (Table 5.3, 128 worlds) on CUDA, `quick` (16 worlds) on CPU. kgrl and
+vision_kgrl take the defaults of a recipe (`--kgrl-recipe`): `reach_keep_prior` with the quick
+preset (issue 28's deviations, which beat the prior on paired episodes), `base` with the thesis's.
 """
 
 from __future__ import annotations
@@ -82,7 +84,22 @@ EVAL_MIN_EPISODES = 128  # sd of a success rate <= 0.5 / sqrt(128) = 0.044 over 
 CURVE_EPISODE_KEYS = ("episode_reward", "success_rate", "success_rate_any", "mean_contact_force",
                       "peak_contact_force", "time_to_first_success_s")  # the env's episode log -> curves.jsonl
 KGRL_EXPLORATION = {"warmup": "policy", "actor_init_std": 0.1, "log_std_max": -1.2}
-METHOD_SAC_DEFAULTS: dict[str, dict] = {"kgrl": KGRL_EXPLORATION, "vision_kgrl": KGRL_EXPLORATION}
+# The kgrl and vision_kgrl defaults by recipe (--kgrl-recipe): SAC fields over the preset and the null
+# space's reach floors (mm). base: the thesis's null space (eq. 4.36) with the exploration above, the
+# quick default of sessions 4-15. reach_keep_prior (issue 28): reach floors x, y 3 mm and z 25 mm
+# (kmp.tables.with_reach_floor), a soft log-std bound, the IBRL anchor to a = 0, actor updates once a
+# success is in the buffer, LayerNorm critics, the prior's own 4 800 rollouts kept in a second buffer
+# sampled at 50 % (RLPD) and a 1e-3 normalizer floor; each a deviation from the thesis, measured in
+# docs/benchmarks.md ("Learning beyond the prior") and docs/results/kgrl_reach_28c.
+KGRL_RECIPES: dict[str, dict] = {
+    "base": {"sac": KGRL_EXPLORATION, "reach_floor_mm": 0.0, "reach_floor_z_mm": 0.0},
+    "reach_keep_prior": {"sac": {**KGRL_EXPLORATION, "log_std_bound": "tanh", "prior_anchor": True,
+                                 "actor_after_reward": True, "critic_layer_norm": True, "prior_rollouts": 4800,
+                                 "prior_ratio": 0.5, "obs_norm_eps": 1e-3},
+                         "reach_floor_mm": 3.0, "reach_floor_z_mm": 25.0},
+}
+DEFAULT_KGRL_RECIPE = {"quick": "reach_keep_prior", "thesis": "base"}  # the thesis preset stays Table 5.3
+KGRL_RECIPE_METHODS = ("kgrl", "vision_kgrl")  # the SAC methods on the KMP's null space
 # ppo_train_cfg settings that only rsl-rl's OnPolicyRunner reads: refused by --ppo, with what run.py does instead
 PPO_RUNNER_ONLY = {"save_interval": "checkpoints: --checkpoint-every", "logger": "it writes tensorboard itself",
                    "multi_gpu": "one device per run"}
@@ -103,7 +120,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="SAC hyperparameters (default: thesis on CUDA, quick on CPU)")
     ap.add_argument("--sac", metavar="FIELD=VALUE", action="append", default=[],
                     help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256 "
-                         "(kgrl methods default to warmup=policy, actor_init_std=0.1, log_std_max=-1.2)")
+                         "(over the kgrl methods' --kgrl-recipe)")
+    ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
+                    help="kgrl, vision_kgrl: the defaults under --sac and the reach floors: reach_keep_prior (the "
+                         "quick preset's: beats the prior on paired episodes, docs/benchmarks.md) or base (the "
+                         "thesis preset's: the thesis's null space; the quick default until issue 28). Default: "
+                         "the preset's, or on --resume the run's")
     ap.add_argument("--ppo", metavar="KEY=VALUE", action="append", default=[],
                     help="ppo methods: override an rsl-rl PPO setting by its dotted path, e.g. --ppo "
                          "num_steps_per_env=32 --ppo algorithm.learning_rate=3e-4 (default: Isaac Lab Factory's, "
@@ -131,12 +153,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="KGRL: the KMP's reference distribution: gmr (the thesis, eqs. 4.2-4.3; default) or empirical "
                          "(the demonstrations' per-step mean and covariance: a deviation, see docs/benchmarks.md)")
     ap.add_argument("--kgrl-reach-floor", type=float, default=None, metavar="MM",
-                    help="KGRL: a saturated action moves the x and y command at least MM mm at every step (default 0: "
-                         "the thesis's null space, ~1 mm late in PegInsert; a deviation, see kmp.tables.with_reach_floor "
-                         "and docs/benchmarks.md)")
+                    help="KGRL: a saturated action moves the x and y command at least MM mm at every step (default: "
+                         "the recipe's, reach_keep_prior 3, base 0: the thesis's null space, ~1 mm late in PegInsert; "
+                         "a deviation, see kmp.tables.with_reach_floor and docs/benchmarks.md)")
     ap.add_argument("--kgrl-reach-floor-z", type=float, default=None, metavar="MM",
-                    help="KGRL: likewise for z (default 0: the thesis's, ~2 mm late in PegInsert, while the prior "
-                         "presses a blocked peg ~20 mm into the face; a deviation, see docs/benchmarks.md)")
+                    help="KGRL: likewise for z (default: the recipe's, reach_keep_prior 25, base 0: the thesis's, ~2 mm "
+                         "late in PegInsert, while the prior presses a blocked peg ~20 mm into the face; a "
+                         "deviation, see docs/benchmarks.md)")
     ap.add_argument("--vae", type=Path, default=None,
                     help="vision methods: your own trained vae.pt (train/train_vae.py) instead of the cached one")
     ap.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
@@ -205,9 +228,19 @@ def run_meta(args, obs_dim: int) -> dict:
         meta["geometry"] = args.geometry
     if getattr(args, "label", None):  # absent unless given, so older runs still resume
         meta["label"] = args.label
+    if getattr(args, "kgrl_recipe", None) not in (None, "base"):  # absent for base, as in runs before recipes
+        meta["kgrl_recipe"] = args.kgrl_recipe
     if uses_vision(args.method):
         meta["vision"] = {"vae": str(vae_path(args)), "latent_dim": VISION_LATENT_DIM}
     return meta
+
+
+def kgrl_recipe(args, preset: str) -> dict:
+    """The run's KGRL_RECIPES entry: --kgrl-recipe, else the preset's (the base recipe's zero floors and no
+    SAC fields for the methods without one)."""
+    if args.method not in KGRL_RECIPE_METHODS:
+        return {"sac": {}, "reach_floor_mm": 0.0, "reach_floor_z_mm": 0.0}
+    return KGRL_RECIPES[args.kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]]
 
 
 def uses_vision(method: str) -> bool:
@@ -269,6 +302,8 @@ def main(argv=None) -> int:
                 setattr(args, name, meta.get(name))
         if "no_time_obs" not in given:
             args.no_time_obs = not meta["time_obs"]
+        if "kgrl_recipe" not in given and args.method in KGRL_RECIPE_METHODS:  # absent: a run before recipes
+            args.kgrl_recipe = meta.get("kgrl_recipe", "base")
         if "geometry" not in given:
             args.geometry = meta.get("geometry", "primitives")
         if "vae" not in given and "vision" in meta:
@@ -342,13 +377,15 @@ def main(argv=None) -> int:
         args.sac_overrides = parse_sac_overrides(args.sac)
     except ValueError as e:
         ap.error(str(e))
+    if args.kgrl_recipe is not None and args.method not in KGRL_RECIPE_METHODS:
+        ap.error(f"--kgrl-recipe is for the kgrl methods on SAC ({', '.join(KGRL_RECIPE_METHODS)}), not {args.method!r}")
     # the SAC config checked before torch and Warp are imported, with the preset the device implies
     # when it is given (a CUDA default is known only below; then it is checked again there)
     provisional = args.preset or ("thesis" if (args.device or "").startswith("cuda") else "quick")
     checked = args.sac_config
     if checked is None and not uses_ppo(args.method):
         try:
-            checked = make_sac_config(provisional, **{**METHOD_SAC_DEFAULTS.get(args.method, {}), **args.sac_overrides})
+            checked = make_sac_config(provisional, **{**kgrl_recipe(args, provisional)["sac"], **args.sac_overrides})
         except ValueError as e:
             ap.error(f"--sac: {e}")
     prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(checked, f, None)]
@@ -359,8 +396,10 @@ def main(argv=None) -> int:
                  f"(kgrl, vision_kgrl), not {args.method!r}")
     if args.kmp_reference is not None and not uses_kmp(args.method):
         ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
+    reach_z = args.kgrl_reach_floor_z if args.kgrl_reach_floor_z is not None else \
+        kgrl_recipe(args, provisional)["reach_floor_z_mm"]
     if (getattr(checked, "prior_rollouts_policy", "prior") == "search" and uses_kmp(args.method) and not args.resume
-            and not args.kgrl_reach_floor_z):  # (a resumed run keeps the floors its checkpoint records)
+            and not reach_z):  # (a resumed run keeps the floors its checkpoint records)
         ap.error("--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs "
                  "z reach, give --kgrl-reach-floor-z MM (e.g. 25; the thesis's null space reaches ~2 mm there)")
     for flag, value in (("--kgrl-reach-floor", args.kgrl_reach_floor), ("--kgrl-reach-floor-z", args.kgrl_reach_floor_z)):
@@ -395,10 +434,12 @@ def main(argv=None) -> int:
     if (why := device_error(args.device)) is not None:
         ap.error(why)
     args.preset = args.preset or ("thesis" if args.device.startswith("cuda") else "quick")
+    if args.method in KGRL_RECIPE_METHODS:
+        args.kgrl_recipe = args.kgrl_recipe or DEFAULT_KGRL_RECIPE[args.preset]
     if args.sac_config is None and not uses_ppo(args.method):
         try:
             args.sac_config = (checked if args.preset == provisional else
-                               make_sac_config(args.preset, **{**METHOD_SAC_DEFAULTS.get(args.method, {}),
+                               make_sac_config(args.preset, **{**kgrl_recipe(args, args.preset)["sac"],
                                                                **args.sac_overrides}))
         except ValueError as e:
             ap.error(f"--sac: {e}")
@@ -495,7 +536,10 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
 
         kw = {"reference": args.kmp_reference or "gmr"}
-        floors = {"reach_floor_mm": args.kgrl_reach_floor or 0.0, "reach_floor_z_mm": args.kgrl_reach_floor_z or 0.0}
+        recipe = kgrl_recipe(args, args.preset)
+        floors = {key: float(given if given is not None else recipe[key])
+                  for key, given in (("reach_floor_mm", args.kgrl_reach_floor),
+                                     ("reach_floor_z_mm", args.kgrl_reach_floor_z))}
         if payload is not None and "prior" in payload["meta"]:  # the KMP parameters it was fitted with
             kw = {k: payload["meta"]["prior"][k] for k in ("lam", "beta", "l")}
             kw["reference"] = payload["meta"]["prior"].get("reference", "gmr")
@@ -559,6 +603,13 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
     curves = CurveWriter(run_dir, resume_at=counters["transitions"] if payload else None)
     bar = tqdm(total=args.total_steps, initial=counters["transitions"], unit="tr", disable=args.no_progress,
                desc=f"{args.method} {args.task} {args.env} {args.action_dim}D")
+    if action_path is not None and args.method in KGRL_RECIPE_METHODS:
+        log(f"KGRL recipe {args.kgrl_recipe}: reach floors x, y {floors['reach_floor_mm']:g} mm, "
+            f"z {floors['reach_floor_z_mm']:g} mm (--kgrl-recipe, docs/cli.md)")
+        if args.sac_config.prior_rollouts >= args.total_steps:
+            log(f"note: the first {args.sac_config.prior_rollouts} transitions act with the prior "
+                f"(--sac prior_rollouts), all of this run's {args.total_steps}: every training episode is the "
+                "prior's; the learner acts only in the final evaluation")
     rollout_policy = None
     if getattr(args.sac_config, "prior_rollouts_policy", "prior") == "search":
         from vkgrl_newton.agents.evaluation import KMPSearchPolicy
