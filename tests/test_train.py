@@ -323,7 +323,8 @@ def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatc
 def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos_file):
     run_dir = tmp_path / "kgrl"
     code = run_py.main(["--method", "kgrl", "--run-dir", str(run_dir), "--demos", str(peg_demos_file),
-                        "--total-steps", "16", "--eval-episodes", "1", *TINY])
+                        "--total-steps", "16", "--eval-episodes", "1", *TINY,
+                        "--sac", "prior_rollouts=8"])  # (the recipe's 4 800: the learner acts in half of this run)
     assert code == 0
     metrics = json.loads((run_dir / "metrics.json").read_text())
     for key in ("success_rate", "success_rate_any", "mean_contact_force", "peak_contact_force",
@@ -343,7 +344,9 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     sac = config["sac"]  # the recipe's SAC fields over the preset, TINY's over both
     assert config["kgrl_recipe"] == "reach_keep_prior"
     assert {k: sac[k] for k in run_py.KGRL_RECIPES["reach_keep_prior"]["sac"]} == \
-        run_py.KGRL_RECIPES["reach_keep_prior"]["sac"] and sac["batch_size"] == 8
+        {**run_py.KGRL_RECIPES["reach_keep_prior"]["sac"], "prior_rollouts": 8} and sac["batch_size"] == 8
+    assert (sac["log_std_bound"], sac["prior_anchor"], sac["critic_layer_norm"], sac["prior_ratio"]) == \
+        ("tanh", True, True, 0.5)  # the recipe, spelled out
     assert (sac["warmup"], sac["actor_init_std"], sac["log_std_max"]) == ("policy", 0.1, -1.2)
     assert 0.0 <= metrics["success_rate"] <= 1.0 and metrics["mean_contact_force"] >= 0.0
     # the KMP tables were fitted beside the demonstrations and are reused
@@ -407,12 +410,16 @@ def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cp
         run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress",
                      "--kgrl-recipe", "reach_keep_prior"])
     assert exc.value.code == 2 and "kgrl_recipe" in capsys.readouterr().err
+    # resumed without the flag, it continues as base
+    assert run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress"]) == 0
+    assert "kgrl_recipe" not in load_checkpoint(ckpt)["meta"]
+    assert load_checkpoint(ckpt)["meta"]["sac"] == meta["sac"] and load_checkpoint(ckpt)["counters"]["transitions"] == 16
 
     demos.unlink()
     synthetic_demos("PegInsert", 6, action_dim=6, seed=4).save(demos)  # other demonstrations, same name
     now = file_sha256(demos)
     evaluate_py = load_script("evaluate")
-    for call in (lambda: run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress"]),
+    for call in (lambda: run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "24", "--no-progress"]),
                  lambda: evaluate_py.main(["--checkpoint", str(ckpt), "--device", "cpu", "--num-envs", "2"])):
         with pytest.raises(SystemExit) as exc:
             call()
@@ -625,3 +632,18 @@ def test_run_resume_with_another_geometry_is_refused(run_py, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "belongs to a different run; geometry: checkpoint 'mesh', now 'primitives'" in err
     assert err.count("checkpoint '") == 1  # nothing else differs
+    assert "kgrl_recipe" not in err  # a checkpoint from before recipes resumes as base, the recipe it ran
+
+
+def test_the_search_is_refused_without_z_reach_under_the_final_presets_recipe(run_py):
+    """The check runs again once the preset is known (thesis on a CUDA device: the base recipe, no z floor)."""
+    import argparse
+
+    from vkgrl_newton.agents.sac_config import make_sac_config
+
+    cfg = make_sac_config("quick", prior_rollouts=480, prior_rollouts_policy="search")
+    args = argparse.Namespace(method="kgrl", kgrl_recipe=None, kgrl_reach_floor_z=None, resume=False)
+    assert run_py._search_without_z_reach(args, cfg, "quick") is None  # reach_keep_prior: 25 mm
+    assert "needs z reach" in run_py._search_without_z_reach(args, cfg, "thesis")
+    args.kgrl_reach_floor_z = 10.0
+    assert run_py._search_without_z_reach(args, cfg, "thesis") is None

@@ -243,6 +243,18 @@ def kgrl_recipe(args, preset: str) -> dict:
     return KGRL_RECIPES[args.kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]]
 
 
+def _search_without_z_reach(args, sac_config, preset: str) -> str | None:
+    """The refusal of prior_rollouts_policy=search where the run's z reach floor (given, else the recipe's
+    of `preset`) is 0; None otherwise. A resumed run keeps the floors its checkpoint records."""
+    reach_z = args.kgrl_reach_floor_z if args.kgrl_reach_floor_z is not None else \
+        kgrl_recipe(args, preset)["reach_floor_z_mm"]
+    if getattr(sac_config, "prior_rollouts_policy", "prior") == "search" and uses_kmp(args.method) \
+            and not args.resume and not reach_z:
+        return ("--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs "
+                "z reach, give --kgrl-reach-floor-z MM (e.g. 25; the thesis's null space reaches ~2 mm there)")
+    return None
+
+
 def uses_vision(method: str) -> bool:
     return method.startswith("vision_")
 
@@ -396,12 +408,8 @@ def main(argv=None) -> int:
                  f"(kgrl, vision_kgrl), not {args.method!r}")
     if args.kmp_reference is not None and not uses_kmp(args.method):
         ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
-    reach_z = args.kgrl_reach_floor_z if args.kgrl_reach_floor_z is not None else \
-        kgrl_recipe(args, provisional)["reach_floor_z_mm"]
-    if (getattr(checked, "prior_rollouts_policy", "prior") == "search" and uses_kmp(args.method) and not args.resume
-            and not reach_z):  # (a resumed run keeps the floors its checkpoint records)
-        ap.error("--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs "
-                 "z reach, give --kgrl-reach-floor-z MM (e.g. 25; the thesis's null space reaches ~2 mm there)")
+    if why := _search_without_z_reach(args, checked, provisional):
+        ap.error(why)
     for flag, value in (("--kgrl-reach-floor", args.kgrl_reach_floor), ("--kgrl-reach-floor-z", args.kgrl_reach_floor_z)):
         if value is None:
             continue
@@ -443,6 +451,8 @@ def main(argv=None) -> int:
                                                                **args.sac_overrides}))
         except ValueError as e:
             ap.error(f"--sac: {e}")
+        if why := _search_without_z_reach(args, args.sac_config, args.preset):  # (the preset may have changed)
+            ap.error(why)
     defaults = RUN_DEFAULTS[args.preset]
     args.num_envs = args.num_envs or defaults["num_envs"]
     args.total_steps = args.total_steps or defaults["total_steps"]

@@ -1,6 +1,6 @@
 """Run a grid of train/run.py trials on Ray: a local Ray by default, a cluster with --address.
 
-    python train/sweep.py --out runs/sweeps/quick --grid quick        # 57 min on a 2-core CPU
+    python train/sweep.py --out runs/sweeps/quick --grid quick        # 57 min on 2 cores with kgrl base; longer now
     python train/sweep.py --out runs/sweeps/peg --tasks PegInsert --envs factory --action-dims 4 6 \\
         --methods sac kgrl --seeds 0 1 2 -- --total-steps 30000 --num-envs 16
     python train/sweep.py --out runs/sweeps/thesis --grid thesis --address auto --gpus-per-trial 0.25
@@ -63,7 +63,8 @@ GRIDS = {
     # the thesis's comparison: 48 configurations x 10 seeds (chapter 6)
     "thesis": {"tasks": list(TASKS), "envs": list(ENVS), "action_dims": list(ACTION_DIMS), "methods": list(METHODS),
                "seeds": list(range(10))},
-    # what a 2-core CPU finishes in about an hour on the quick preset (57 min; docs/benchmarks.md)
+    # what a 2-core CPU finishes in hours on the quick preset (57 min with kgrl's base recipe, docs/benchmarks.md;
+    # kgrl's reach_keep_prior trials take 2-4x as long: ~25 min each, two at a time)
     "quick": {"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [4, 6], "methods": ["sac", "kgrl"],
               "seeds": [0, 1, 2]},
 }
