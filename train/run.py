@@ -243,6 +243,11 @@ def kgrl_recipe(args, preset: str) -> dict:
     return KGRL_RECIPES[args.kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]]
 
 
+def sac_config_for(args, preset: str) -> SACConfig:
+    """The preset's SACConfig under the recipe's fields and --sac's (ValueError names a bad one)."""
+    return make_sac_config(preset, **{**kgrl_recipe(args, preset)["sac"], **args.sac_overrides})
+
+
 def _search_without_z_reach(args, sac_config, preset: str) -> str | None:
     """The refusal of prior_rollouts_policy=search where the run's z reach floor (given, else the recipe's
     of `preset`) is 0; None otherwise. A resumed run keeps the floors its checkpoint records."""
@@ -397,7 +402,7 @@ def main(argv=None) -> int:
     checked = args.sac_config
     if checked is None and not uses_ppo(args.method):
         try:
-            checked = make_sac_config(provisional, **{**kgrl_recipe(args, provisional)["sac"], **args.sac_overrides})
+            checked = sac_config_for(args, provisional)
         except ValueError as e:
             ap.error(f"--sac: {e}")
     prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(checked, f, None)]
@@ -446,9 +451,7 @@ def main(argv=None) -> int:
         args.kgrl_recipe = args.kgrl_recipe or DEFAULT_KGRL_RECIPE[args.preset]
     if args.sac_config is None and not uses_ppo(args.method):
         try:
-            args.sac_config = (checked if args.preset == provisional else
-                               make_sac_config(args.preset, **{**kgrl_recipe(args, args.preset)["sac"],
-                                                               **args.sac_overrides}))
+            args.sac_config = checked if args.preset == provisional else sac_config_for(args, args.preset)
         except ValueError as e:
             ap.error(f"--sac: {e}")
         if why := _search_without_z_reach(args, args.sac_config, args.preset):  # (the preset may have changed)
