@@ -384,7 +384,7 @@ def test_the_search_acts_in_the_first_prior_rollouts_and_fills_their_buffer(run_
         assert prior_rows == min(n, 8)  # the prior buffer holds the search's transitions, and only those
 
 
-def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cpu, tmp_path, capsys):
+def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cpu, tmp_path, capsys, monkeypatch):
     """The run's meta records the demonstrations by sha256; a file changed under that name stops
     --resume and evaluate.py --checkpoint with both hashes named; evaluate's --demos overrides."""
     from vkgrl_newton.agents.checkpoint import load_checkpoint
@@ -410,6 +410,14 @@ def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cp
         run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress",
                      "--kgrl-recipe", "reach_keep_prior"])
     assert exc.value.code == 2 and "kgrl_recipe" in capsys.readouterr().err
+    # so is another reach floor, in one line, before the env is built (train() is never entered)
+    with monkeypatch.context() as m:
+        m.setattr(run_py, "train", lambda *a, **k: pytest.fail("train() entered before the refusal"))
+        for flag in ("--kgrl-reach-floor", "--kgrl-reach-floor-z"):
+            with pytest.raises(SystemExit) as exc:
+                run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress", flag, "3"])
+            err = capsys.readouterr().err
+            assert exc.value.code == 2 and f"the run's {flag} was 0 mm, not 3" in err.strip().splitlines()[-1]
     # resumed without the flag, it continues as base
     assert run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress"]) == 0
     assert "kgrl_recipe" not in load_checkpoint(ckpt)["meta"]

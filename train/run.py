@@ -260,6 +260,12 @@ def _search_without_z_reach(args, sac_config, preset: str) -> str | None:
     return None
 
 
+def reach_floor_flags(args) -> tuple:
+    """(prior-record key, flag, value given or None) of the two reach floors."""
+    return (("reach_floor_mm", "--kgrl-reach-floor", args.kgrl_reach_floor),
+            ("reach_floor_z_mm", "--kgrl-reach-floor-z", args.kgrl_reach_floor_z))
+
+
 def uses_vision(method: str) -> bool:
     return method.startswith("vision_")
 
@@ -492,6 +498,11 @@ def main(argv=None) -> int:
             check_meta(saved, now, ckpt_path)
         except ValueError as e:
             ap.error(f"--resume: {e}")
+        if uses_kmp(args.method) and "prior" in payload["meta"]:  # the null space it learned in, before any build
+            for key, flag, given in reach_floor_flags(args):
+                was = payload["meta"]["prior"].get(key, 0.0)
+                if given is not None and given != was:
+                    ap.error(f"--resume: the run's {flag} was {was:g} mm, not {given:g}; resume without it")
     with stop_signals_as_interrupts():  # SIGTERM / SIGHUP: checkpoint and exit like Ctrl-C
         return train(args, run_dir, ckpt_path, payload)
 
@@ -550,17 +561,12 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
 
         kw = {"reference": args.kmp_reference or "gmr"}
         recipe = kgrl_recipe(args, args.preset)
-        floors = {key: float(given if given is not None else recipe[key])
-                  for key, given in (("reach_floor_mm", args.kgrl_reach_floor),
-                                     ("reach_floor_z_mm", args.kgrl_reach_floor_z))}
+        floors = {key: float(given if given is not None else recipe[key]) for key, _, given in reach_floor_flags(args)}
         if payload is not None and "prior" in payload["meta"]:  # the KMP parameters it was fitted with
             kw = {k: payload["meta"]["prior"][k] for k in ("lam", "beta", "l")}
             kw["reference"] = payload["meta"]["prior"].get("reference", "gmr")
-            for key, flag, given in (("reach_floor_mm", "--kgrl-reach-floor", args.kgrl_reach_floor),
-                                     ("reach_floor_z_mm", "--kgrl-reach-floor-z", args.kgrl_reach_floor_z)):
+            for key, _, _ in reach_floor_flags(args):  # (a different one given was refused in main)
                 floors[key] = payload["meta"]["prior"].get(key, 0.0)
-                if given is not None and given != floors[key]:
-                    raise SystemExit(f"train/run.py: --resume: the run's {flag} was {floors[key]}, not {given}")
         tables, demos_path = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos,
                                                 num_demos=args.num_demos, device=args.device, geometry=args.geometry,
                                                 log=log, **kw)
