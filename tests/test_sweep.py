@@ -117,6 +117,36 @@ def test_grid_errors_name_the_axis_and_the_allowed_values(sweep_py, tmp_path, ca
     assert thesis[0]["run_dir"] == str(tmp_path / "PegInsert_factory_4d_sac" / "seed0")
 
 
+def test_variants_and_method_args_reach_their_trials_and_only_theirs(sweep_py, tmp_path):
+    """A variant is one more axis (its own run directory, --label and arguments, after the seed); a
+    method's method_args go to that method's trials alone, so a grid mixing sac and kgrl can pin kgrl's
+    --kgrl-recipe (which sac refuses)."""
+    grid = sweep_py.validate_grid({"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [4],
+                                   "methods": ["sac", "kgrl"], "seeds": [0, 1],
+                                   "variants": {"a": ["--sac", "tau=0.01"], "b": []},
+                                   "method_args": {"kgrl": ["--kgrl-recipe", "base"]}})
+    trials = sweep_py.trials_of(grid, tmp_path)
+    expected = [(m, seed, v) for m in ("sac", "kgrl") for seed in (0, 1) for v in ("a", "b")]
+    assert [(t["method"], t["seed"], t["variant"]) for t in trials] == expected
+    for t in trials:
+        variant_args = {"a": ["--sac", "tau=0.01"], "b": []}[t["variant"]]
+        recipe = ["--kgrl-recipe", "base"] if t["method"] == "kgrl" else []
+        assert t["extra_args"] == ["--label", t["variant"], *variant_args, *recipe], t
+        assert t["run_dir"] == str(tmp_path / f"PegInsert_factory_4d_{t['method']}+{t['variant']}" / f"seed{t['seed']}")
+    # without variants, method_args alone; a method without any gets no extra arguments
+    plain = sweep_py.trials_of(sweep_py.validate_grid({k: v for k, v in grid.items() if k != "variants"}), tmp_path)
+    assert [t.get("extra_args") for t in plain] == [None, None, ["--kgrl-recipe", "base"], ["--kgrl-recipe", "base"]]
+    base = {k: v for k, v in grid.items() if k not in ("variants", "method_args")}
+    for method_args, message in (({"ppo": ["--seed", "1"]}, "names 'ppo', not one of the grid's methods"),
+                                 ({"kgrl": "--kgrl-recipe base"}, "a list of run.py arguments"),
+                                 ({"kgrl": ["--seed=3"]}, "sets --seed=3, which the sweep sets per trial"),
+                                 ({}, "non-empty object")):
+        with pytest.raises(ValueError, match=message.replace("(", "\\(").replace(")", "\\)")):
+            sweep_py.validate_grid({**base, "method_args": method_args})
+    with pytest.raises(ValueError, match="unknown axes \\['method_arg'\\]"):
+        sweep_py.validate_grid({**base, "method_arg": {}})
+
+
 def test_sweep_finishes_retries_a_killed_trial_and_restarts_nothing(sweep_py, wp_cpu, tmp_path, capsys):
     out = tmp_path / "sweep"
     grid = [*GRID, "--action-dims", "4", "6", "--seeds", "0", "1"]  # 2 x 2 trials, 2 at a time on 2 cores

@@ -7,6 +7,10 @@
     python train/sweep.py --out runs/sweeps/quick --status       # one line per trial
     python train/report.py runs/sweeps/quick --out runs/reports/quick
 
+A JSON grid holds the five axes and optionally "variants" ({name: [run.py arguments]}: one more
+axis, compared seed by seed) and "method_args" ({method: [run.py arguments]}: for that method's
+trials alone, e.g. kgrl's --kgrl-recipe in a grid with sac).
+
 A sweep directory holds sweep.json (its grid and the arguments every trial gets) and one run
 directory of train/run.py per trial, named from the configuration alone:
 DIR/<task>_<env>_<D>d_<method>/seed<S>/ with run.py's files, the trial's log train.log (every
@@ -73,9 +77,9 @@ ALLOWED = {"tasks": TASKS, "envs": ENVS, "action_dims": ACTION_DIMS, "methods": 
 # ----------------------------------------------------------------------------- the grid
 def validate_grid(grid: dict) -> dict:
     """The grid with its axes checked; ValueError names a bad axis or value and the allowed ones."""
-    unknown = set(grid) - set(AXES) - {"variants"}
+    unknown = set(grid) - set(AXES) - {"variants", "method_args"}
     if unknown:
-        raise ValueError(f"grid: unknown axes {sorted(unknown)}; allowed: {list(AXES)} and 'variants'")
+        raise ValueError(f"grid: unknown axes {sorted(unknown)}; allowed: {list(AXES)}, 'variants' and 'method_args'")
     out = {}
     for axis in AXES:
         values = grid.get(axis)
@@ -104,6 +108,20 @@ def validate_grid(grid: dict) -> dict:
             if bad:
                 raise ValueError(f"grid: variant {name!r} sets {bad[0]}, which the sweep sets per trial")
         out["variants"] = {k: list(v) for k, v in variants.items()}
+    if "method_args" in grid:  # {method: [run.py arguments]}: options for one method's trials only (a mixed
+        # grid can pin e.g. kgrl's --kgrl-recipe, which sac refuses)
+        method_args = grid["method_args"]
+        if not isinstance(method_args, dict) or not method_args:
+            raise ValueError("grid: 'method_args' must be a non-empty object {method: [run.py arguments]}")
+        for method, extra in method_args.items():
+            if method not in out["methods"]:
+                raise ValueError(f"grid: method_args names {method!r}, not one of the grid's methods {out['methods']}")
+            if not isinstance(extra, list) or not all(isinstance(a, str) for a in extra):
+                raise ValueError(f"grid: method_args {method!r}: a list of run.py arguments (strings), got {extra!r}")
+            bad = [a for a in extra if a.split("=")[0] in FORBIDDEN_RUN_ARGS + ("--label",)]
+            if bad:
+                raise ValueError(f"grid: method_args {method!r} sets {bad[0]}, which the sweep sets per trial")
+        out["method_args"] = {k: list(v) for k, v in method_args.items()}
     return out
 
 
@@ -113,10 +131,12 @@ def configuration_name(task: str, env: str, action_dim: int, method: str) -> str
 
 def trials_of(grid: dict, out: Path) -> list[dict]:
     """One dict per trial, in grid order (task, env, action dim, method, seed, variant). A variant's
-    trials live in <configuration>+<variant>/ and run with `--label <variant>` and its arguments."""
+    trials live in <configuration>+<variant>/ and run with `--label <variant>` and its arguments; a
+    method's trials get its method_args after them."""
     trials = []
     variants = grid.get("variants") or {None: []}
     for task, env, dim, method in itertools.product(*(grid[a] for a in AXES[:-1])):
+        per_method = grid.get("method_args", {}).get(method, [])
         for seed in grid["seeds"]:  # seeds outermost: a sweep stopped midway has as many seeds of each variant
             for variant, extra in variants.items():
                 name = configuration_name(task, env, dim, method) + (f"+{variant}" if variant else "")
@@ -124,6 +144,8 @@ def trials_of(grid: dict, out: Path) -> list[dict]:
                          "method": method, "seed": seed, "run_dir": str(out / name / f"seed{seed}")}
                 if variant:
                     trial.update(variant=variant, extra_args=["--label", variant, *extra])
+                if per_method:
+                    trial["extra_args"] = [*trial.get("extra_args", []), *per_method]
                 trials.append(trial)
     return trials
 
