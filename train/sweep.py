@@ -95,33 +95,26 @@ def validate_grid(grid: dict) -> dict:
         if len(set(values)) != len(values):
             raise ValueError(f"grid: axis {axis!r} repeats a value: {values!r}")
         out[axis] = list(values)
-    if "variants" in grid:  # {name: [run.py arguments]}: one more axis, of option sets
-        variants = grid["variants"]
-        if not isinstance(variants, dict) or not variants:
-            raise ValueError("grid: 'variants' must be a non-empty object {name: [run.py arguments]}")
-        for name, extra in variants.items():
-            if not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", name):
+    # "variants" {name: [run.py arguments]}: one more axis, of option sets; "method_args" {method: [run.py
+    # arguments]}: options for one method's trials only (a mixed grid can pin kgrl's --kgrl-recipe, which sac refuses)
+    for key, what in (("variants", "name"), ("method_args", "method")):
+        if key not in grid:
+            continue
+        sets = grid[key]
+        if not isinstance(sets, dict) or not sets:
+            raise ValueError(f"grid: {key!r} must be a non-empty object {{{what}: [run.py arguments]}}")
+        for name, extra in sets.items():
+            if key == "variants" and not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", name):
                 raise ValueError(f"grid: variant name {name!r}: 1-40 letters, digits, '_', '.', '-'")
+            if key == "method_args" and name not in out["methods"]:
+                raise ValueError(f"grid: method_args names {name!r}, not one of the grid's methods {out['methods']}")
+            where = "variant" if key == "variants" else key
             if not isinstance(extra, list) or not all(isinstance(a, str) for a in extra):
-                raise ValueError(f"grid: variant {name!r}: a list of run.py arguments (strings), got {extra!r}")
+                raise ValueError(f"grid: {where} {name!r}: a list of run.py arguments (strings), got {extra!r}")
             bad = [a for a in extra if a.split("=")[0] in FORBIDDEN_RUN_ARGS + ("--label",)]
             if bad:
-                raise ValueError(f"grid: variant {name!r} sets {bad[0]}, which the sweep sets per trial")
-        out["variants"] = {k: list(v) for k, v in variants.items()}
-    if "method_args" in grid:  # {method: [run.py arguments]}: options for one method's trials only (a mixed
-        # grid can pin e.g. kgrl's --kgrl-recipe, which sac refuses)
-        method_args = grid["method_args"]
-        if not isinstance(method_args, dict) or not method_args:
-            raise ValueError("grid: 'method_args' must be a non-empty object {method: [run.py arguments]}")
-        for method, extra in method_args.items():
-            if method not in out["methods"]:
-                raise ValueError(f"grid: method_args names {method!r}, not one of the grid's methods {out['methods']}")
-            if not isinstance(extra, list) or not all(isinstance(a, str) for a in extra):
-                raise ValueError(f"grid: method_args {method!r}: a list of run.py arguments (strings), got {extra!r}")
-            bad = [a for a in extra if a.split("=")[0] in FORBIDDEN_RUN_ARGS + ("--label",)]
-            if bad:
-                raise ValueError(f"grid: method_args {method!r} sets {bad[0]}, which the sweep sets per trial")
-        out["method_args"] = {k: list(v) for k, v in method_args.items()}
+                raise ValueError(f"grid: {where} {name!r} sets {bad[0]}, which the sweep sets per trial")
+        out[key] = {k: list(v) for k, v in sets.items()}
     return out
 
 
