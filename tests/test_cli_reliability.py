@@ -44,7 +44,15 @@ RUN_PY_CASES = [
     (["--kgrl-reach-floor", "nan", "--method", "kgrl"], "--kgrl-reach-floor must be a number of mm in [0, 50]"),
     (["--kgrl-reach-floor-z", "25", "--method", "sac"], "--kgrl-reach-floor-z is for the kgrl methods"),
     (["--kgrl-reach-floor-z", "-1", "--method", "kgrl"], "--kgrl-reach-floor-z must be a number of mm in [0, 50]"),
-    (["--sac", "prior_rollouts_policy=spiral"], "prior_rollouts_policy='spiral'; allowed: ['prior', 'search']"),
+    (["--sac", "prior_rollouts_policy=spiral"],
+     "prior_rollouts_policy='spiral'; allowed: ['prior', 'search', 'scripted']"),
+    (["--sac", "prior_rollouts=480", "--method", "sac"],  # a = 0 is KGRL's prior; SAC's rollouts are the demonstrator's
+     "learns from the KMP prior (a = 0), for the kgrl methods (kgrl, vision_kgrl), not 'sac'; the SAC methods learn "
+     "from the demonstrator's rollouts with --sac prior_rollouts_policy=scripted"),
+    (["--sac", "prior_rollouts=480", "--sac", "prior_rollouts_policy=scripted", "--method", "kgrl"],
+     "--sac prior_rollouts_policy=scripted is for the SAC methods (sac, vision_sac), not 'kgrl'"),
+    (["--sac", "prior_rollouts=480", "--sac", "prior_rollouts_policy=scripted", "--sac", "prior_anchor=true",
+      "--method", "vision_sac"], "--sac prior_anchor: acts with or learns from the KMP prior"),
     (["--kgrl-recipe", "base", "--sac", "prior_rollouts_policy=search"],
      "prior_rollouts_policy='search' acts in the first prior_rollouts"),
     (["--sac", "prior_rollouts=480", "--sac", "prior_rollouts_policy=search", "--method", "sac"],

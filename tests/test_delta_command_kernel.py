@@ -133,3 +133,47 @@ def test_delta_command_matches_the_torch_path_sign_included(wp_cpu, D):
         q = _bound_tilt(q, MAX_TILT)
     np.testing.assert_allclose(got["p"], p.numpy(), rtol=0, atol=POS_TOL)
     np.testing.assert_allclose(got["q"], q.numpy(), rtol=0, atol=QUAT_TOL)
+
+
+@pytest.mark.parametrize("D,unidirectional", [(4, False), (6, False), (4, True), (6, True)])
+def test_actions_for_command_inverts_the_mapping_and_its_smoothing(D, unidirectional):
+    """AssemblyEnv.actions_for_command (the scripted demonstrator through the SAC action space) against
+    the float64 reference above: the pose commanded by a smoothed action s = ema a + (1 - ema) prev gives
+    back a; a pose out of reach gives a saturated action of the right sign."""
+    import functools
+    from types import SimpleNamespace
+
+    import torch
+
+    from vkgrl_newton.envs.assembly_env import AssemblyEnv
+
+    rng = np.random.default_rng(100 + 10 * D + unidirectional)
+    E = 256
+    hand_p, hand_q, _, pos_scale, rot_scale, _ = _inputs(rng, E, D)
+    # hands within 15 deg of down and rotations of at most 0.15 rad: the 30 deg cone's clamp (6D) stays
+    # out; the box centred on the TCP: the position bound too (both are the kernel's, not inverted)
+    hand_q = (Rotation.from_rotvec(random_axes(rng, E) * rng.uniform(0.0, math.radians(15.0), E)[:, None])
+              * Rotation.from_euler("xyz", np.stack([np.full(E, math.pi), np.zeros(E), rng.uniform(-3, 3, E)], 1)))
+    hand_q = hand_q.as_quat().astype(np.float32).astype(np.float64)
+    tcp_p = hand_p + Rotation.from_quat(hand_q).apply(TCP_OFFSET)
+    raw = rng.uniform(-0.95, 0.95, (E, D))  # the actions to recover
+    ema = rng.uniform(0.2, 1.0, E)  # Factory 0.2; Forge 0.025-0.1 would amplify the same errors x8 (see below)
+    prev = rng.uniform(-1.0, 1.0, (E, D))
+    smoothed = ema[:, None] * raw + (1.0 - ema[:, None]) * prev
+    pos, quat = reference(hand_p, hand_q, smoothed, pos_scale, rot_scale, tcp_p, unidirectional)
+
+    f32 = lambda x: torch.tensor(x, dtype=torch.float32)  # noqa: E731
+    fake = SimpleNamespace(num_envs=E, tdev=torch.device("cpu"), cfg=SimpleNamespace(action_dim=D),
+                           geometry=SimpleNamespace(unidirectional_yaw=unidirectional), pos_scale=f32(pos_scale),
+                           rot_scale=f32(rot_scale), ema=f32(ema), actions_applied=f32(prev),
+                           tcp_pose=lambda: (f32(tcp_p), f32(hand_q)))
+    fake._check_actions = functools.partial(AssemblyEnv._check_actions, fake)
+    got = AssemblyEnv.actions_for_command(fake, f32(pos), f32(quat)).double().numpy()
+    # float32 error: positions ~0.6 m (6e-8 a rounding, ~4 of them) over pos_scale >= 0.01 m -> 2.4e-5;
+    # rotations through quat_mul, quat_log or the Euler yaw (~20 roundings of 1.2e-7 on unit numbers ->
+    # 2.4e-6 rad) over rot_scale >= 0.0485 -> 5e-5; then (s - (1 - ema) prev) / ema with ema >= 0.2: x5 -> 2.5e-4
+    np.testing.assert_allclose(got, raw, atol=3e-4, rtol=0)
+
+    far = f32(tcp_p + np.array([0.1, -0.1, 0.1]))  # 10 cm: 5x the largest step
+    sat = AssemblyEnv.actions_for_command(fake, far, f32(hand_q)).numpy()
+    assert (sat[:, 0] == 1.0).all() and (sat[:, 1] == -1.0).all() and (sat[:, 2] == 1.0).all()

@@ -384,6 +384,62 @@ def test_the_search_acts_in_the_first_prior_rollouts_and_fills_their_buffer(run_
         assert prior_rows == min(n, 8)  # the prior buffer holds the search's transitions, and only those
 
 
+def test_sac_learns_from_the_scripted_demonstrators_rollouts_in_its_first_transitions(run_py, wp_cpu, tmp_path,
+                                                                                      monkeypatch):
+    """--sac prior_rollouts_policy=scripted (the SAC methods' RLPD demonstrations): the demonstrator's
+    actions through the SAC action space are stepped and kept in the second buffer for exactly the first
+    prior_rollouts transitions; the real policy's actions (not a marker) are what the env's inverse mapping
+    makes of the demonstrator's commands, in [-1, 1]."""
+    from vkgrl_newton.agents import evaluation
+    from vkgrl_newton.agents.sac import SAC
+
+    stored, made = [], []
+
+    def actions(self, env, obs, _actions=evaluation.ScriptedDeltaPolicy.actions):
+        a = _actions(self, env, obs)
+        made.append((int(env.episode_length_buf[0]), a.clone()))
+        return a
+
+    def add(self, obs, action, reward, next_obs, terminated, _add=SAC.add):
+        stored.append((self.num_transitions, action.clone(), len(self.prior_buffer)))
+        _add(self, obs, action, reward, next_obs, terminated)
+
+    monkeypatch.setattr(evaluation.ScriptedDeltaPolicy, "actions", actions)
+    monkeypatch.setattr(SAC, "add", add)
+    run_dir = tmp_path / "sac_demos"
+    assert run_py.main(["--method", "sac", "--action-dim", "4", "--run-dir", str(run_dir), "--total-steps", "16",
+                        "--eval-episodes", "0", *TINY, "--sac", "prior_rollouts=8",
+                        "--sac", "prior_rollouts_policy=scripted", "--sac", "prior_ratio=0.5"]) == 0
+    assert [n for n, _ in made] == [0, 1, 2, 3] and len(stored) == 8  # 2 worlds: 4 env steps scripted, 4 learned
+    for (n, action, prior_rows), (_, scripted) in zip(stored, made + [(None, None)] * 4):
+        if n < 8:
+            assert torch.equal(action, scripted) and float(action.abs().max()) <= 1.0
+        assert prior_rows == min(n, 8)  # the second buffer holds the demonstrator's transitions, and only those
+    assert any(float(a.abs().max()) > 0 for _, a in made)  # it moved the arm (a = 0 would be SAC's zero default)
+    assert json.loads((run_dir / "config.json").read_text())["sac"]["prior_rollouts_policy"] == "scripted"
+
+
+def test_scripted_delta_policy_restarts_only_the_worlds_that_start(peg_env):
+    """A world reset alone (a blow-up) restarts the demonstrator there; the others keep their episode."""
+    from vkgrl_newton.agents.evaluation import ScriptedDeltaPolicy
+
+    env = peg_env
+    if int(env.episode_length_buf.max()) > 0:
+        env.reset()
+    policy = ScriptedDeltaPolicy(seed=5)
+    obs = env.get_observations()
+    a = policy.actions(env, obs)  # step 0 everywhere: a full reset of the demonstrator
+    assert a.shape == (env.num_envs, 6) and float(a.abs().max()) <= 1.0
+    before = {k: v.clone() for k, v in vars(policy.inserter).items() if isinstance(v, torch.Tensor)}
+    mask = torch.tensor([False, True, False, False])
+    policy.reset(env, mask)
+    after = vars(policy.inserter)
+    for name in ("height", "t_approach", "v_insert", "push"):  # drawn anew for world 1 alone
+        assert torch.equal(after[name][~mask], before[name][~mask]), name
+        assert not torch.equal(after[name][mask], before[name][mask]), name
+    assert torch.equal(after["offset_tcp"], before["offset_tcp"])  # nothing moved between the two: same grasp
+
+
 def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cpu, tmp_path, capsys, monkeypatch):
     """The run's meta records the demonstrations by sha256; a file changed under that name stops
     --resume and evaluate.py --checkpoint with both hashes named; evaluate's --demos overrides."""

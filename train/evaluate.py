@@ -5,7 +5,9 @@
     python train/evaluate.py --checkpoint runs/train/PegInsert_kgrl_factory_4d_seed0/checkpoints/last.pt \
         --episodes 2 --video runs/eval/kgrl.gif
 
-Policies: `scripted` (privileged demonstrator, absolute TCP poses through `step_pose`), `random`
+Policies: `scripted` (privileged demonstrator, absolute TCP poses through `step_pose`),
+`scripted_delta` (the same demonstrator through the SAC action space: what a SAC run's
+`--sac prior_rollouts_policy=scripted` rollouts are), `random`
 (uniform in [-1, 1]^D) and `zero` (both through the SAC action path `step`), `kmp_prior` (the
 KMP prior alone, zeta = 0, fitted as train/run.py does), `kmp_search` (the prior plus a blind spiral
 search once the part is blocked, from the observation alone, in a null space with reach floors of its
@@ -36,7 +38,7 @@ from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, GEOMETRIES, SOLVERS, TASKS, geometry_error  # noqa: E402
 
-POLICIES = ("scripted", "random", "zero", "kmp_prior", "kmp_search")
+POLICIES = ("scripted", "scripted_delta", "random", "zero", "kmp_prior", "kmp_search")
 
 
 def main(argv=None) -> int:
@@ -108,7 +110,7 @@ def main(argv=None) -> int:
     import torch
 
     from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, KMPSearchPolicy, RandomPolicy,
-                                                ScriptedPolicy, ZeroPolicy, evaluate, write_video)
+                                                ScriptedDeltaPolicy, ScriptedPolicy, ZeroPolicy, evaluate, write_video)
     from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
     from vkgrl_newton.sim.scene import SimConfig
 
@@ -160,6 +162,7 @@ def main(argv=None) -> int:
         policy = AgentPolicy(agent, action_path, time_obs=meta["time_obs"])
     else:
         policy = {"scripted": lambda: ScriptedPolicy(seed=args.seed), "random": lambda: RandomPolicy(seed=args.seed),
+                  "scripted_delta": lambda: ScriptedDeltaPolicy(seed=args.seed),
                   "zero": ZeroPolicy, "kmp_prior": lambda: KMPPriorPolicy(action_path),
                   "kmp_search": lambda: KMPSearchPolicy.with_floors(tables, env)}[args.policy]()
 

@@ -412,11 +412,19 @@ def main(argv=None) -> int:
         except ValueError as e:
             ap.error(f"--sac: {e}")
     prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(checked, f, None)]
-    if getattr(checked, "prior_rollouts_policy", "prior") != "prior":
+    rollouts = getattr(checked, "prior_rollouts_policy", "prior")
+    if rollouts == "scripted":  # the SAC methods' demonstrations: the first rollouts and their buffer are theirs
+        if uses_kmp(args.method):
+            ap.error(f"--sac prior_rollouts_policy=scripted is for the SAC methods (sac, vision_sac), not "
+                     f"{args.method!r}, whose first rollouts are the prior's (prior) or the search's (search)")
+        prior_only = [f for f in prior_only if f == "prior_anchor"]
+    elif rollouts != "prior":
         prior_only.append("prior_rollouts_policy")
     if prior_only and not uses_kmp(args.method):
+        hint = "" if prior_only[0] == "prior_anchor" else \
+            "; the SAC methods learn from the demonstrator's rollouts with --sac prior_rollouts_policy=scripted"
         ap.error(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl methods "
-                 f"(kgrl, vision_kgrl), not {args.method!r}")
+                 f"(kgrl, vision_kgrl), not {args.method!r}{hint}")
     if args.kmp_reference is not None and not uses_kmp(args.method):
         ap.error(f"--kmp-reference is for the kgrl methods (kgrl, vision_kgrl, kgrl_ppo), not {args.method!r}")
     if why := _search_without_z_reach(args, checked, provisional):
@@ -634,6 +642,13 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         from vkgrl_newton.agents.evaluation import KMPSearchPolicy
 
         rollout_policy = KMPSearchPolicy(action_path)  # within the run's own reach floors
+    elif getattr(args.sac_config, "prior_rollouts_policy", "prior") == "scripted":
+        from vkgrl_newton.agents.evaluation import ScriptedDeltaPolicy
+
+        rollout_policy = ScriptedDeltaPolicy(seed=args.seed)
+        log(f"the first {args.sac_config.prior_rollouts} transitions act with the scripted demonstrator through "
+            f"the SAC action space (--sac prior_rollouts_policy=scripted), kept in a second buffer sampled at "
+            f"prior_ratio={args.sac_config.prior_ratio:g}")
     loop = Loop(args=args, env=env, step_fn=step_fn, agent=agent, counters=counters, writer=writer, curves=curves,
                 bar=bar, checkpoint=checkpoint, ckpt_path=ckpt_path, log=log, time_obs=time_obs, env_steps0=counters["env_steps"],
                 grad0=agent.num_updates, rollout_policy=rollout_policy)

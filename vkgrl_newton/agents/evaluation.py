@@ -5,6 +5,7 @@ A policy here has `reset(env)` (called at the start of every evaluation episode)
 entry point (`env.step` for the SAC path, `env.step_pose` for KGRL and the scripted demonstrator).
 
 - `ScriptedPolicy`: the privileged demonstrator (envs/scripted.py).
+- `ScriptedDeltaPolicy`: the same demonstrator through the SAC action space (env.actions_for_command).
 - `RandomPolicy`, `ZeroPolicy`: uniform in [-1, 1]^D / zeros, through the SAC path.
 - `KMPPriorPolicy`: the KMP prior alone, zeta = 0 (KGRL with a silent policy).
 - `KMPSearchPolicy`: the prior plus a blind spiral search once the part is blocked, in a floored null
@@ -27,7 +28,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-__all__ = ["Policy", "ScriptedPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "KMPSearchPolicy",
+__all__ = ["Policy", "ScriptedPolicy", "ScriptedDeltaPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "KMPSearchPolicy",
            "SearchParams", "spiral_offset", "AgentPolicy", "evaluate", "policy_observation"]
 
 
@@ -61,6 +62,44 @@ class ScriptedPolicy(Policy):
 
     def step(self, env, obs):
         return env.step_pose(*self.inserter.act(env))
+
+
+class ScriptedDeltaPolicy(Policy):
+    """The scripted demonstrator acting through the SAC action space: each control step its pose
+    command becomes the actions whose smoothed value commands that pose at the step's first physics
+    step (AssemblyEnv.actions_for_command; the delta mapping then follows the TCP through the step,
+    so it is not the demonstrator's own controller, and the smoothing lags its fast changes). The
+    demonstrator's per-world state restarts where an episode starts (step 0, in `actions`), so it also
+    acts in a SAC run's first transitions (SACConfig.prior_rollouts_policy "scripted": RLPD's
+    demonstrations in a buffer of their own)."""
+
+    def __init__(self, seed: int = 0):
+        from ..envs.scripted import ScriptedInserter
+
+        self.inserter = ScriptedInserter(seed=seed)
+        self._started = False
+
+    def reset(self, env, mask: torch.Tensor | None = None) -> None:
+        """The demonstrator's state restarted in the worlds of `mask` (all when None)."""
+        old = dict(vars(self.inserter)) if self._started and mask is not None else None
+        self.inserter.reset(env)
+        self._started = True
+        if old is not None:  # the other worlds keep their episode's state
+            for name, value in vars(self.inserter).items():
+                if isinstance(value, torch.Tensor) and value.ndim >= 1 and value.shape[0] == env.num_envs:
+                    m = mask.view(-1, *([1] * (value.ndim - 1)))
+                    setattr(self.inserter, name, torch.where(m, value, old[name]))
+
+    def actions(self, env, obs) -> torch.Tensor:
+        """(E, D) actions in [-1, 1] for this control step (the SAC action space)."""
+        start = env.episode_length_buf == 0
+        # one host read a step, only while it acts (a SAC run's first prior_rollouts transitions)
+        if not self._started or bool(start.any()):
+            self.reset(env, start if self._started else None)
+        return env.actions_for_command(*self.inserter.act(env))
+
+    def step(self, env, obs):
+        return env.step(env.actions_for_command(*self.inserter.act(env)))
 
 
 class RandomPolicy(Policy):

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 WARMUPS = ("uniform", "policy")
 LOG_STD_BOUNDS = ("clamp", "tanh")
-ROLLOUT_POLICIES = ("prior", "search")  # SACConfig.prior_rollouts_policy
+ROLLOUT_POLICIES = ("prior", "search", "scripted")  # SACConfig.prior_rollouts_policy
 ACTIVATION_NAMES = ("elu", "relu", "tanh")
 MATMUL_BACKENDS = ("onednn", "torch")  # agents/dense.py
 
@@ -86,6 +86,9 @@ class SACConfig:
     # a blind spiral search once the part is blocked, agents.evaluation.KMPSearchPolicy, through the
     # run's own action path; it needs z reach, --kgrl-reach-floor-z). A deviation: scripted data beyond
     # the demonstrations, so that the buffer holds blocked parts that were searched for and seated.
+    # "scripted" is for the SAC methods (sac, vision_sac), which have no prior: the scripted demonstrator
+    # through the SAC action space (agents.evaluation.ScriptedDeltaPolicy), RLPD's demonstrations kept in
+    # the second buffer (prior_ratio). A deviation from the thesis's SAC, which learns from its own data.
     prior_rollouts_policy: str = "prior"
     # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel) or
     # "torch" (MKL; its AVX2 path on AMD). Not a hyperparameter: float32 last bits differ.

@@ -733,6 +733,35 @@ class AssemblyEnv(VecEnv):
         self._state_version += 1
         return self._finish_step(pos, quat)
 
+    def actions_for_command(self, tcp_pos_w: torch.Tensor, tcp_quat_w: torch.Tensor) -> torch.Tensor:
+        """The inverse of `step`'s mapping: (E, D) actions in [-1, 1] under which the next `step`'s first
+        physics step commands this TCP pose (world frame), where the smoothing reaches it in one step;
+        clipped where it does not (more than |a| = 1 of the smoothed action, or an EMA step too far).
+
+        The smoothed action wanted: (pos - p_tcp) / pos_scale; the yaw difference / rot_scale_z (4D:
+        exp(r) q_tcp adds r_z to the Euler yaw), the world-frame rotation vector log(q q_tcp^-1) /
+        rot_scale (6D), -2 r_z / rot_scale_z - 1 (unidirectional yaw); clipped to [-1, 1], then
+        a = (wanted - (1 - ema) applied) / ema. For a demonstrator commanding poses through the SAC
+        action space (agents.evaluation.ScriptedDeltaPolicy); privileged (reads the smoothing state)."""
+        pos = self._check_actions(tcp_pos_w, 3, "tcp_pos_w")
+        quat = self._check_actions(tcp_quat_w, 4, "tcp_quat_w")
+        quat = quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        tcp_p, tcp_q = self.tcp_pose()
+        D = self.cfg.action_dim
+        wanted = torch.empty(self.num_envs, D, device=self.tdev)
+        wanted[:, :3] = (pos - tcp_p) / self.pos_scale
+        if D == 4:
+            r_z = _wrap(euler_xyz_from_quat(quat)[2] - euler_xyz_from_quat(tcp_q)[2])
+            wanted[:, 3] = r_z / self.rot_scale[:, 2]
+        else:
+            r = quat_log(quat_mul(quat, quat_conjugate(tcp_q)))
+            r_z = r[:, 2]
+            wanted[:, 3:] = r / self.rot_scale
+        if self.geometry.unidirectional_yaw:  # the kernel's r_z = -(a + 1) / 2 rot_scale_z
+            wanted[:, D - 1] = -2.0 * r_z / self.rot_scale[:, 2] - 1.0
+        ema = self.ema.unsqueeze(-1)
+        return ((wanted.clamp(-1.0, 1.0) - (1.0 - ema) * self.actions_applied) / ema).clamp(-1.0, 1.0)
+
     def _finish_step(self, cmd_pos: torch.Tensor, cmd_quat: torch.Tensor):
         self.episode_length_buf += 1
         self.step_index.copy_(self.episode_length_buf.to(torch.int32))
