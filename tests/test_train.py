@@ -353,26 +353,35 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     assert peg_demos_file.with_name(peg_demos_file.stem + ".kmp4d.npz").exists()
 
 
+def recorded_adds(monkeypatch) -> list:
+    """(transitions so far, action, prior-buffer rows) of every SAC.add, which still runs."""
+    from vkgrl_newton.agents.sac import SAC
+
+    stored = []
+
+    def add(self, obs, action, reward, next_obs, terminated, _add=SAC.add):
+        stored.append((self.num_transitions, action.clone(), len(self.prior_buffer)))
+        _add(self, obs, action, reward, next_obs, terminated)
+
+    monkeypatch.setattr(SAC, "add", add)
+    return stored
+
+
 def test_the_search_acts_in_the_first_prior_rollouts_and_fills_their_buffer(run_py, wp_cpu, tmp_path, peg_demos_file,
                                                                              monkeypatch):
     """--sac prior_rollouts_policy=search through run.py's loop: the search's actions (here a marker
     value in place of KMPSearchPolicy's, which tests/test_prior_learning.py checks on its own) are the
     ones stepped and stored for exactly the first prior_rollouts transitions, the learner's after."""
     from vkgrl_newton.agents import evaluation
-    from vkgrl_newton.agents.sac import SAC
 
-    marker, calls, stored = 0.25, [], []
+    marker, calls = 0.25, []
 
     def search_actions(self, env, obs):
         calls.append(int(env.episode_length_buf[0]))
         return torch.full((env.num_envs, 4), marker, device=env.tdev)
 
-    def add(self, obs, action, reward, next_obs, terminated, _add=SAC.add):
-        stored.append((self.num_transitions, action.clone(), len(self.prior_buffer)))
-        _add(self, obs, action, reward, next_obs, terminated)
-
     monkeypatch.setattr(evaluation.KMPSearchPolicy, "actions", search_actions)
-    monkeypatch.setattr(SAC, "add", add)
+    stored = recorded_adds(monkeypatch)
     run_dir = tmp_path / "search"
     assert run_py.main(["--method", "kgrl", "--run-dir", str(run_dir), "--demos", str(peg_demos_file),
                         "--total-steps", "16", "--eval-episodes", "0", *TINY, "--sac", "prior_rollouts=8",
@@ -391,21 +400,16 @@ def test_sac_learns_from_the_scripted_demonstrators_rollouts_in_its_first_transi
     prior_rollouts transitions; the real policy's actions (not a marker) are what the env's inverse mapping
     makes of the demonstrator's commands, in [-1, 1]."""
     from vkgrl_newton.agents import evaluation
-    from vkgrl_newton.agents.sac import SAC
 
-    stored, made = [], []
+    made = []
 
     def actions(self, env, obs, _actions=evaluation.ScriptedDeltaPolicy.actions):
         a = _actions(self, env, obs)
         made.append((int(env.episode_length_buf[0]), a.clone()))
         return a
 
-    def add(self, obs, action, reward, next_obs, terminated, _add=SAC.add):
-        stored.append((self.num_transitions, action.clone(), len(self.prior_buffer)))
-        _add(self, obs, action, reward, next_obs, terminated)
-
     monkeypatch.setattr(evaluation.ScriptedDeltaPolicy, "actions", actions)
-    monkeypatch.setattr(SAC, "add", add)
+    stored = recorded_adds(monkeypatch)
     run_dir = tmp_path / "sac_demos"
     assert run_py.main(["--method", "sac", "--action-dim", "4", "--run-dir", str(run_dir), "--total-steps", "16",
                         "--eval-episodes", "0", *TINY, "--sac", "prior_rollouts=8",
