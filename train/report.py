@@ -24,6 +24,9 @@ empty directory; nothing is overwritten):
   prior_gain.md          KGRL runs against their prior on the same evaluation episodes: success,
                          the prior's, the paired gain with 95 % bootstrap intervals over seeds and
                          over pooled episodes, training success early (5k-10k) and late (last 5k)
+  method_pairs.md        each two methods (variants included) of a task, env and D against each
+                         other on the same evaluation episodes: B minus A per seed both ran with one
+                         eval seed, its mean with a 95 % bootstrap interval over seeds, and pooled
   curves_<task>_<env>_<D>d.png  learning curves, methods overlaid, mean +- std over seeds
                          (vkgrl_newton/results/plots.py, as train/plot_runs.py)
 
@@ -142,6 +145,9 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
         for m in METRICS:
             v = metrics.get(m)
             row[m] = math.nan if v is None else float(v)
+        if "per_episode" in metrics:  # its final evaluation's episodes, for pairing with other methods
+            row["outcomes"] = world_outcomes(metrics)
+            row["eval_seed"] = metrics.get("eval_seed")
         if "paired_gain" in metrics:  # a KGRL run's paired evaluation against its prior (run.py)
             row["paired"] = {"gain": metrics["paired_gain"]["success_rate"],
                              "prior_success": metrics["prior_eval"]["success_rate"],
@@ -301,14 +307,16 @@ def prior_gain_rows(cells: dict, reps: int) -> list[dict]:
     return rows
 
 
-def prior_gain_markdown(rows: list[dict]) -> str:
-    def ci(g):
-        if g["mean"] is None:
-            return DASH
-        if g["ci_low"] is None:
-            return f"{g['mean']:+.3f} [one seed: no interval]"
-        return f"{g['mean']:+.3f} [{g['ci_low']:+.3f}, {g['ci_high']:+.3f}]"
+def ci(g: dict) -> str:
+    """A paired difference as '+0.123 [+0.050, +0.190]' (its mean and interval)."""
+    if g["mean"] is None:
+        return DASH
+    if g["ci_low"] is None:
+        return f"{g['mean']:+.3f} [one seed: no interval]"
+    return f"{g['mean']:+.3f} [{g['ci_low']:+.3f}, {g['ci_high']:+.3f}]"
 
+
+def prior_gain_markdown(rows: list[dict]) -> str:
     def num(v):
         return DASH if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
 
@@ -325,6 +333,56 @@ def prior_gain_markdown(rows: list[dict]) -> str:
                    f"{num(r['success'])} | {num(r['prior_success'])} | {ci(r['gain_over_seeds'])} | "
                    f"{ci(r['gain_pooled'])} ({r['gain_pooled']['n_pairs']}) | {num(r['training_early'])} | "
                    f"{num(r['training_late'])} |")
+    return "\n".join(out) + "\n"
+
+
+# ----------------------------------------------------------------------------- methods against each other
+def method_pair_rows(cells: dict, reps: int) -> list[dict]:
+    """Per task, env and D, each two methods (variants included) on the same evaluation episodes: B minus A
+    in success, per seed run by both with one evaluation seed and episode count (the seeds' paired
+    differences: their mean with a percentile-bootstrap interval over seeds), and with all those seeds'
+    episodes pooled. A before B in the report's method order."""
+    rows = []
+    groups: dict[tuple, list[tuple]] = defaultdict(list)
+    for key in sorted(cells, key=_order):
+        groups[key[:3]].append(key)
+    for (task, env, dim), keys in groups.items():
+        for i, key_a in enumerate(keys):
+            for key_b in keys[i + 1:]:
+                by_seed_a = {r["seed"]: r for r in cells[key_a] if "outcomes" in r}
+                pairs = [(by_seed_a[r["seed"]], r) for r in cells[key_b] if "outcomes" in r and r["seed"] in by_seed_a
+                         and r["eval_seed"] == by_seed_a[r["seed"]]["eval_seed"]
+                         and r["outcomes"].shape == by_seed_a[r["seed"]]["outcomes"].shape]
+                if not pairs:
+                    continue
+                pairs.sort(key=lambda ab: ab[0]["seed"])
+                diffs = np.array([np.nanmean(b["outcomes"]) - np.nanmean(a["outcomes"]) for a, b in pairs])
+                rows.append({
+                    "task": task, "env": env, "action_dim": dim, "a": key_a[3], "b": key_b[3],
+                    "seeds": [a["seed"] for a, _ in pairs], "seed_differences": diffs.tolist(),
+                    "a_success": float(np.mean([np.nanmean(a["outcomes"]) for a, _ in pairs])),
+                    "b_success": float(np.mean([np.nanmean(b["outcomes"]) for _, b in pairs])),
+                    "over_seeds": {**paired_gain(diffs, np.zeros_like(diffs), reps=reps, seed=0),
+                                   **({"ci_low": None, "ci_high": None} if len(pairs) < 2 else {})},
+                    "pooled": paired_gain(np.concatenate([b["outcomes"] for _, b in pairs]),
+                                          np.concatenate([a["outcomes"] for a, _ in pairs]), reps=reps, seed=0),
+                })
+    return rows
+
+
+def method_pairs_markdown(rows: list[dict]) -> str:
+    out = ["# Methods against each other on the same episodes (train/report.py)", "",
+           "B minus A in final success, over the seeds both ran with one evaluation seed (run.py --eval-seed): "
+           "the mean of the seeds' differences with a 95 % percentile-bootstrap interval over seeds, and over all "
+           "those seeds' episodes pooled.", "",
+           "| Task | Env | D | A | B | Seeds | A success | B success | B - A over seeds [95 % CI] | "
+           "B - A, episodes pooled [95 % CI] | Per seed |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        per_seed = ", ".join(f"{d:+.3f}" for d in r["seed_differences"])
+        out.append(f"| {r['task']} | {r['env']} | {r['action_dim']} | {r['a']} | {r['b']} | {len(r['seeds'])} | "
+                   f"{r['a_success']:.3f} | {r['b_success']:.3f} | {ci(r['over_seeds'])} | "
+                   f"{ci(r['pooled'])} ({r['pooled']['n_pairs']}) | {per_seed} |")
     return "\n".join(out) + "\n"
 
 
@@ -434,6 +492,10 @@ def _write_report_files(run_dirs, cells, thesis, out: Path, reps: int) -> dict:
     if gains:
         stats["prior_gain"] = gains
         atomic_write_text(out / "prior_gain.md", prior_gain_markdown(gains))
+    pairs = method_pair_rows(cells, reps=reps)
+    if pairs:
+        stats["method_pairs"] = pairs
+        atomic_write_text(out / "method_pairs.md", method_pairs_markdown(pairs))
     atomic_write_text(out / "stats.json", strict_json(stats, indent=2))
     figure = stats_figure(stats)
     atomic_write(out / "stats.png", overwrite=False, write=lambda f: f.write(figure), suffix=".png")
