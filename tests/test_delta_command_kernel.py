@@ -152,8 +152,11 @@ def test_actions_for_command_inverts_the_mapping_and_its_smoothing(D, unidirecti
     hand_p, hand_q, _, pos_scale, rot_scale, _ = _inputs(rng, E, D)
     # hands within 15 deg of down and rotations of at most 0.15 rad: the 30 deg cone's clamp (6D) stays
     # out; the box centred on the TCP: the position bound too (both are the kernel's, not inverted)
+    yaw = rng.uniform(-math.pi, math.pi, E)
+    yaw[:32], yaw[32:64] = math.pi - rng.uniform(0.0, 0.12, 32), -math.pi + rng.uniform(0.0, 0.12, 32)  # near +-pi:
+    # a yaw step of up to 0.146 rad crosses the wrap there, which the inverse must undo
     hand_q = (Rotation.from_rotvec(random_axes(rng, E) * rng.uniform(0.0, math.radians(15.0), E)[:, None])
-              * Rotation.from_euler("xyz", np.stack([np.full(E, math.pi), np.zeros(E), rng.uniform(-3, 3, E)], 1)))
+              * Rotation.from_euler("xyz", np.stack([np.full(E, math.pi), np.zeros(E), yaw], 1)))
     hand_q = hand_q.as_quat().astype(np.float32).astype(np.float64)
     tcp_p = hand_p + Rotation.from_quat(hand_q).apply(TCP_OFFSET)
     raw = rng.uniform(-0.95, 0.95, (E, D))  # the actions to recover

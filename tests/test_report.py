@@ -203,33 +203,43 @@ def test_prior_gain_table_from_paired_runs(report_py, tmp_path):
 
 
 def test_method_pairs_difference_methods_on_the_same_episodes(report_py, tmp_path):
-    """Two labelled variants with known per-episode outcomes: B minus A per seed that both ran with one
-    evaluation seed (a seed only one ran, and a seed evaluated on other episodes, are left out), its mean
-    over seeds, and all paired episodes pooled, against a hand computation."""
+    """Labelled variants with known per-episode outcomes: B minus A per seed that both ran on the same
+    episodes (left out: a seed only one ran, a seed evaluated with another eval seed, a variant with
+    another world count; the episodes either side lost to a blow-up, NaN), its mean over seeds, and all paired episodes
+    pooled, against a hand computation; a run from before per-world outcomes were recorded pairs with
+    nothing (and does not stop the report)."""
     root = tmp_path / "sweep"
-    outcomes = {"a": {0: [1, 0, 0, 0], 1: [0, 0, 0, 0], 2: [1, 1, 0, 0], 3: [1, 1, 1, 1]},
-                "b": {0: [1, 1, 0, 0], 1: [1, 1, 1, 0], 2: [1, 1, 1, 1], 4: [0, 0, 0, 0]}}
+    outcomes = {"a": {0: [1, 0, 0, 0], 1: [0, 0, 0, 0], 2: [1, 1, 0, 0], 3: [1, 1, 1, 1], 5: [1, 1, 0, 0]},
+                "b": {0: [1, 1, NAN, 0], 1: [1, 1, 1, 0], 2: [1, 1, 1, 1], 4: [0, 0, 0, 0]},
+                "c": {0: [1, 1, 1, 1]}, "d": {0: [1, 1, 1, 1], 1: [0, 0, 0, 0]}}
     eval_seeds = {("a", 2): 7}  # seed 2 of a on other episodes than b's
+    num_envs = {"d": 4}  # d: 4 worlds x 1 round, 4 outcomes as a's and b's, but other episodes
     for label, runs in outcomes.items():
         for seed, outcome in runs.items():
-            d = write_run(root, 4, f"sac+{label}", seed, (np.mean(outcome), 1.0, NAN, 10.0))
+            d = write_run(root, 4, f"sac+{label}", seed, (np.nanmean(outcome), 1.0, NAN, 10.0))
             config = json.loads((d / "config.json").read_text())
-            (d / "config.json").write_text(json.dumps({**config, "method": "sac", "label": label}))
+            (d / "config.json").write_text(json.dumps({**config, "method": "sac", "label": label,
+                                                       "num_envs": num_envs.get(label, 2)}))
             m = json.loads((d / "metrics.json").read_text())
-            m.update(per_episode=[{"world_success": outcome[:2]}, {"world_success": outcome[2:]}],
-                     eval_seed=eval_seeds.get((label, seed), 10000))
+            if label == "c":  # an older run: per-episode summaries, no per-world outcomes, no eval seed
+                m.update(per_episode=[{"success_rate": 1.0, "num_episodes": 2}] * 2)
+            else:
+                rounds = [{"world_success": outcome[:2]}, {"world_success": outcome[2:]}]
+                m.update(per_episode=[{"world_success": outcome}] if label in num_envs else rounds,
+                         eval_seed=eval_seeds.get((label, seed), 10000))
             (d / "metrics.json").write_text(json.dumps(m))
     out = tmp_path / "report"
     report_py.main([str(root), "--out", str(out), "--reps", "500"])
     stats = json.loads((out / "stats.json").read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
     (row,) = stats["method_pairs"]
     assert (row["a"], row["b"], row["seeds"]) == ("sac+a", "sac+b", [0, 1])
-    assert row["seed_differences"] == pytest.approx([0.25, 0.75])
-    assert row["over_seeds"]["mean"] == pytest.approx(0.5)
-    assert 0.25 <= row["over_seeds"]["ci_low"] <= 0.5 <= row["over_seeds"]["ci_high"] <= 0.75
-    assert row["pooled"]["mean"] == pytest.approx(0.5) and row["pooled"]["n_pairs"] == 8
-    assert (row["a_success"], row["b_success"]) == pytest.approx((0.125, 0.625))
-    assert "| sac+a | sac+b | 2 | 0.125 | 0.625 | +0.500 [" in (out / "method_pairs.md").read_text()
+    # seed 0 over its 3 complete episodes: b 2/3, a 1/3; seed 1: 3/4 - 0
+    assert row["seed_differences"] == pytest.approx([1 / 3, 0.75])
+    assert row["over_seeds"]["mean"] == pytest.approx((1 / 3 + 0.75) / 2)
+    assert 1 / 3 <= row["over_seeds"]["ci_low"] <= row["over_seeds"]["mean"] <= row["over_seeds"]["ci_high"] <= 0.75
+    assert row["pooled"]["mean"] == pytest.approx(4 / 7) and row["pooled"]["n_pairs"] == 7
+    assert (row["a_success"], row["b_success"]) == pytest.approx(((1 / 3 + 0) / 2, (2 / 3 + 0.75) / 2))
+    assert "| sac+a | sac+b | 2 | 0.167 | 0.708 | +0.542 [" in (out / "method_pairs.md").read_text()
 
 
 def test_report_refuses_bad_reps_before_writing(report_py, runs, tmp_path, capsys):

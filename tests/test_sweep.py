@@ -9,6 +9,7 @@ Tiny trials: 2 worlds, 900 transitions (450 per world: 3 episodes), a 16-unit SA
 from __future__ import annotations
 
 import json
+import re
 import os
 import signal
 import subprocess
@@ -137,11 +138,14 @@ def test_variants_and_method_args_reach_their_trials_and_only_theirs(sweep_py, t
     plain = sweep_py.trials_of(sweep_py.validate_grid({k: v for k, v in grid.items() if k != "variants"}), tmp_path)
     assert [t.get("extra_args") for t in plain] == [None, None, ["--kgrl-recipe", "base"], ["--kgrl-recipe", "base"]]
     base = {k: v for k, v in grid.items() if k not in ("variants", "method_args")}
-    for method_args, message in (({"ppo": ["--seed", "1"]}, "names 'ppo', not one of the grid's methods"),
+    # a method the grid lacks (say, taken out by --methods): its arguments go with it
+    assert sweep_py.validate_grid({**base, "method_args": {"kgrl": ["--kgrl-recipe", "base"], "ppo": ["--ppo", "x=1"]}}
+                                  )["method_args"] == {"kgrl": ["--kgrl-recipe", "base"]}
+    for method_args, message in (({"td3": ["--sac", "tau=0.01"]}, "names 'td3', not a method; allowed: ['sac'"),
                                  ({"kgrl": "--kgrl-recipe base"}, "a list of run.py arguments"),
                                  ({"kgrl": ["--seed=3"]}, "sets --seed=3, which the sweep sets per trial"),
                                  ({}, "non-empty object")):
-        with pytest.raises(ValueError, match=message.replace("(", "\\(").replace(")", "\\)")):
+        with pytest.raises(ValueError, match=re.escape(message)):
             sweep_py.validate_grid({**base, "method_args": method_args})
     with pytest.raises(ValueError, match="unknown axes \\['method_arg'\\]"):
         sweep_py.validate_grid({**base, "method_arg": {}})

@@ -397,8 +397,8 @@ def test_sac_learns_from_the_scripted_demonstrators_rollouts_in_its_first_transi
                                                                                       monkeypatch):
     """--sac prior_rollouts_policy=scripted (the SAC methods' RLPD demonstrations): the demonstrator's
     actions through the SAC action space are stepped and kept in the second buffer for exactly the first
-    prior_rollouts transitions; the real policy's actions (not a marker) are what the env's inverse mapping
-    makes of the demonstrator's commands, in [-1, 1]."""
+    prior_rollouts transitions. The real policy acts here (not a marker): its actions are the ones stored,
+    in [-1, 1] and not all 0 (the inverse mapping itself: tests/test_delta_command_kernel.py)."""
     from vkgrl_newton.agents import evaluation
 
     made = []
@@ -424,24 +424,40 @@ def test_sac_learns_from_the_scripted_demonstrators_rollouts_in_its_first_transi
 
 
 def test_scripted_delta_policy_restarts_only_the_worlds_that_start(peg_env):
-    """A world reset alone (a blow-up) restarts the demonstrator there; the others keep their episode."""
+    """A world reset alone (a blow-up's) mid-episode: at the next `actions` the demonstrator restarts
+    there (new draws, approach phase, not started) and every per-world state of the others is what their
+    episode had made of it."""
     from vkgrl_newton.agents.evaluation import ScriptedDeltaPolicy
 
     env = peg_env
     if int(env.episode_length_buf.max()) > 0:
         env.reset()
     policy = ScriptedDeltaPolicy(seed=5)
-    obs = env.get_observations()
-    a = policy.actions(env, obs)  # step 0 everywhere: a full reset of the demonstrator
-    assert a.shape == (env.num_envs, 6) and float(a.abs().max()) <= 1.0
-    before = {k: v.clone() for k, v in vars(policy.inserter).items() if isinstance(v, torch.Tensor)}
+    for _ in range(6):  # past the start delays (0-4 steps): the worlds have started, their state has evolved
+        a = policy.actions(env, env.get_observations())
+        assert a.shape == (env.num_envs, 6) and float(a.abs().max()) <= 1.0
+        env.step(a)
     mask = torch.tensor([False, True, False, False])
-    policy.reset(env, mask)
-    after = vars(policy.inserter)
-    for name in ("height", "t_approach", "v_insert", "push"):  # drawn anew for world 1 alone
-        assert torch.equal(after[name][~mask], before[name][~mask]), name
-        assert not torch.equal(after[name][mask], before[name][mask]), name
-    assert torch.equal(after["offset_tcp"], before["offset_tcp"])  # nothing moved between the two: same grasp
+    env._reset_worlds(mask)  # what the env does to a blown-up world
+    before = {k: v.clone() for k, v in vars(policy.inserter).items() if isinstance(v, torch.Tensor)}
+    assert bool(before["started"].all())
+    seen = {}
+    act = policy.inserter.act
+
+    def recording_act(env_):  # the state the demonstrator acts from, once restarted
+        seen.update({k: v.clone() for k, v in vars(policy.inserter).items() if isinstance(v, torch.Tensor)})
+        return act(env_)
+
+    policy.inserter.act = recording_act
+    policy.actions(env, env.get_observations())
+    per_world = [k for k, v in before.items() if v.ndim >= 1 and v.shape[0] == env.num_envs]
+    assert {"phase", "started", "seg_start", "seg_goal", "bias", "height", "offset_tcp"} <= set(per_world)
+    for name in per_world:
+        assert torch.equal(seen[name][~mask], before[name][~mask]), name
+    assert not bool(seen["started"][1]) and int(seen["phase"][1]) == 0  # world 1 starts over
+    for name in ("height", "t_approach", "v_insert", "push"):  # with draws of its own
+        assert not torch.equal(seen[name][mask], before[name][mask]), name
+    env.reset()  # (the shared env back at an episode start)
 
 
 def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cpu, tmp_path, capsys, monkeypatch):

@@ -145,9 +145,11 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
         for m in METRICS:
             v = metrics.get(m)
             row[m] = math.nan if v is None else float(v)
-        if "per_episode" in metrics:  # its final evaluation's episodes, for pairing with other methods
+        if "eval_seed" in metrics and all("world_success" in e for e in metrics.get("per_episode") or [{}]):
+            # its final evaluation's episodes, for pairing with other methods (runs from before per-world
+            # outcomes and evaluation seeds were recorded have none to pair)
             row["outcomes"] = world_outcomes(metrics)
-            row["eval_seed"] = metrics.get("eval_seed")
+            row["episodes_key"] = (metrics["eval_seed"], config.get("num_envs"), len(metrics["per_episode"]))
         if "paired_gain" in metrics:  # a KGRL run's paired evaluation against its prior (run.py)
             row["paired"] = {"gain": metrics["paired_gain"]["success_rate"],
                              "prior_success": metrics["prior_eval"]["success_rate"],
@@ -339,9 +341,10 @@ def prior_gain_markdown(rows: list[dict]) -> str:
 # ----------------------------------------------------------------------------- methods against each other
 def method_pair_rows(cells: dict, reps: int) -> list[dict]:
     """Per task, env and D, each two methods (variants included) on the same evaluation episodes: B minus A
-    in success, per seed run by both with one evaluation seed and episode count (the seeds' paired
-    differences: their mean with a percentile-bootstrap interval over seeds), and with all those seeds'
-    episodes pooled. A before B in the report's method order."""
+    in success, per seed run by both on the same episodes (one evaluation seed, world count and round
+    count; each seed's difference over the episodes both counted), their mean with a percentile-bootstrap
+    interval over seeds, and all those seeds' episodes pooled. A before B in the report's method order.
+    Runs that recorded no per-world outcomes or evaluation seed (older runs) are not paired."""
     rows = []
     groups: dict[tuple, list[tuple]] = defaultdict(list)
     for key in sorted(cells, key=_order):
@@ -350,18 +353,23 @@ def method_pair_rows(cells: dict, reps: int) -> list[dict]:
         for i, key_a in enumerate(keys):
             for key_b in keys[i + 1:]:
                 by_seed_a = {r["seed"]: r for r in cells[key_a] if "outcomes" in r}
+                # the same episodes: one evaluation seed, worlds and rounds
                 pairs = [(by_seed_a[r["seed"]], r) for r in cells[key_b] if "outcomes" in r and r["seed"] in by_seed_a
-                         and r["eval_seed"] == by_seed_a[r["seed"]]["eval_seed"]
-                         and r["outcomes"].shape == by_seed_a[r["seed"]]["outcomes"].shape]
-                if not pairs:
+                         and r["episodes_key"] == by_seed_a[r["seed"]]["episodes_key"]]
+                # per seed over the episodes both counted (a blown-up world's is NaN), as the pooled figure;
+                # paired_gain(b, a): its a_mean is B's success, its b_mean A's
+                kept = [((a, b), paired_gain(b["outcomes"], a["outcomes"], reps=1))
+                        for a, b in sorted(pairs, key=lambda ab: ab[0]["seed"])]
+                kept = [(ab, g) for ab, g in kept if g["mean"] is not None]
+                if not kept:
                     continue
-                pairs.sort(key=lambda ab: ab[0]["seed"])
-                diffs = np.array([np.nanmean(b["outcomes"]) - np.nanmean(a["outcomes"]) for a, b in pairs])
+                pairs, per_seed = [ab for ab, _ in kept], [g for _, g in kept]
+                diffs = np.array([g["mean"] for g in per_seed], dtype=np.float64)
                 rows.append({
                     "task": task, "env": env, "action_dim": dim, "a": key_a[3], "b": key_b[3],
                     "seeds": [a["seed"] for a, _ in pairs], "seed_differences": diffs.tolist(),
-                    "a_success": float(np.mean([np.nanmean(a["outcomes"]) for a, _ in pairs])),
-                    "b_success": float(np.mean([np.nanmean(b["outcomes"]) for _, b in pairs])),
+                    "a_success": float(np.mean([g["b_mean"] for g in per_seed], dtype=np.float64)),
+                    "b_success": float(np.mean([g["a_mean"] for g in per_seed], dtype=np.float64)),
                     "over_seeds": {**paired_gain(diffs, np.zeros_like(diffs), reps=reps, seed=0),
                                    **({"ci_low": None, "ci_high": None} if len(pairs) < 2 else {})},
                     "pooled": paired_gain(np.concatenate([b["outcomes"] for _, b in pairs]),

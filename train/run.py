@@ -646,9 +646,10 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
         from vkgrl_newton.agents.evaluation import ScriptedDeltaPolicy
 
         rollout_policy = ScriptedDeltaPolicy(seed=args.seed)
+        kept = (f"kept in a second buffer sampled at prior_ratio={args.sac_config.prior_ratio:g}"
+                if args.sac_config.prior_ratio > 0 else "in the one replay buffer (prior_ratio=0)")
         log(f"the first {args.sac_config.prior_rollouts} transitions act with the scripted demonstrator through "
-            f"the SAC action space (--sac prior_rollouts_policy=scripted), kept in a second buffer sampled at "
-            f"prior_ratio={args.sac_config.prior_ratio:g}")
+            f"the SAC action space (--sac prior_rollouts_policy=scripted), {kept}")
     loop = Loop(args=args, env=env, step_fn=step_fn, agent=agent, counters=counters, writer=writer, curves=curves,
                 bar=bar, checkpoint=checkpoint, ckpt_path=ckpt_path, log=log, time_obs=time_obs, env_steps0=counters["env_steps"],
                 grad0=agent.num_updates, rollout_policy=rollout_policy)

@@ -106,15 +106,17 @@ def validate_grid(grid: dict) -> dict:
         for name, extra in sets.items():
             if key == "variants" and not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", name):
                 raise ValueError(f"grid: variant name {name!r}: 1-40 letters, digits, '_', '.', '-'")
-            if key == "method_args" and name not in out["methods"]:
-                raise ValueError(f"grid: method_args names {name!r}, not one of the grid's methods {out['methods']}")
+            if key == "method_args" and name not in ALLOWED["methods"]:
+                raise ValueError(f"grid: method_args names {name!r}, not a method; allowed: {list(ALLOWED['methods'])}")
             where = "variant" if key == "variants" else key
             if not isinstance(extra, list) or not all(isinstance(a, str) for a in extra):
                 raise ValueError(f"grid: {where} {name!r}: a list of run.py arguments (strings), got {extra!r}")
             bad = [a for a in extra if a.split("=")[0] in FORBIDDEN_RUN_ARGS + ("--label",)]
             if bad:
                 raise ValueError(f"grid: {where} {name!r} sets {bad[0]}, which the sweep sets per trial")
-        out[key] = {k: list(v) for k, v in sets.items()}
+        # (a method the axis flags took out of the grid, e.g. --methods sac on a grid of sac and kgrl: its
+        # arguments go with it)
+        out[key] = {k: list(v) for k, v in sets.items() if key == "variants" or k in out["methods"]}
     return out
 
 

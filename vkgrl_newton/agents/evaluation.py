@@ -99,6 +99,8 @@ class ScriptedDeltaPolicy(Policy):
         return env.actions_for_command(*self.inserter.act(env))
 
     def step(self, env, obs):
+        # evaluation: `evaluate` calls reset at every episode start (all worlds together, as ScriptedPolicy;
+        # a world reset alone by a blow-up is not restarted here, and its episode is not counted)
         return env.step(env.actions_for_command(*self.inserter.act(env)))
 
 

@@ -78,9 +78,10 @@ class SACConfig:
     # RLPD's symmetric sampling: this fraction of every minibatch comes from the prior buffer (the
     # prior's own rollouts, prior_rollouts below), the rest from the online buffer; 0: one buffer (thesis).
     prior_ratio: float = 0.0
-    # The first prior_rollouts transitions act a = 0 exactly (for KGRL: the prior's own rollouts,
-    # counted in the run's transitions like any other) and, with prior_ratio > 0, are kept in the
-    # prior buffer for good: a critic that always sees the prior's actions knows their value.
+    # The first prior_rollouts transitions act with prior_rollouts_policy (below; by default a = 0
+    # exactly, for KGRL the prior's own rollouts), counted in the run's transitions like any other, and
+    # with prior_ratio > 0 are kept in the prior buffer for good: a critic that always sees the prior's
+    # actions knows their value.
     prior_rollouts: int = 0
     # Who acts in those first transitions: "prior" (a = 0, as above) or "search" (KGRL: the prior plus
     # a blind spiral search once the part is blocked, agents.evaluation.KMPSearchPolicy, through the
@@ -89,6 +90,8 @@ class SACConfig:
     # "scripted" is for the SAC methods (sac, vision_sac), which have no prior: the scripted demonstrator
     # through the SAC action space (agents.evaluation.ScriptedDeltaPolicy), RLPD's demonstrations kept in
     # the second buffer (prior_ratio). A deviation from the thesis's SAC, which learns from its own data.
+    # "search" and "scripted" keep per-world state that a checkpoint does not hold: a run resumed inside
+    # its first prior_rollouts transitions restarts them from where each world is (those episodes differ).
     prior_rollouts_policy: str = "prior"
     # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel) or
     # "torch" (MKL; its AVX2 path on AMD). Not a hyperparameter: float32 last bits differ.

@@ -736,7 +736,10 @@ class AssemblyEnv(VecEnv):
     def actions_for_command(self, tcp_pos_w: torch.Tensor, tcp_quat_w: torch.Tensor) -> torch.Tensor:
         """The inverse of `step`'s mapping: (E, D) actions in [-1, 1] under which the next `step`'s first
         physics step commands this TCP pose (world frame), where the smoothing reaches it in one step;
-        clipped where it does not (more than |a| = 1 of the smoothed action, or an EMA step too far).
+        clipped where it does not (more than |a| = 1 of the smoothed action, per component: a clipped 6D
+        rotation also turns about another axis; or an EMA step too far). Not inverted, as the kernel
+        applies them after: the 5 cm box around the target frame, the 6D tilt cone, 4D's roll = pi and
+        pitch = 0 (the 4D command keeps the pose's yaw alone).
 
         The smoothed action wanted: (pos - p_tcp) / pos_scale; the yaw difference / rot_scale_z (4D:
         exp(r) q_tcp adds r_z to the Euler yaw), the world-frame rotation vector log(q q_tcp^-1) /
