@@ -638,11 +638,12 @@ def train(args, run_dir: Path, ckpt_path: Path, payload: dict | None) -> int:
                 f"(--sac prior_rollouts), all of this run's {args.total_steps}: every training episode is the "
                 "prior's; the learner acts only in the final evaluation")
     rollout_policy = None
-    if getattr(args.sac_config, "prior_rollouts_policy", "prior") == "search":
+    rollouts = getattr(args.sac_config, "prior_rollouts_policy", "prior")  # (PPO runs have no SACConfig)
+    if rollouts == "search":
         from vkgrl_newton.agents.evaluation import KMPSearchPolicy
 
         rollout_policy = KMPSearchPolicy(action_path)  # within the run's own reach floors
-    elif getattr(args.sac_config, "prior_rollouts_policy", "prior") == "scripted":
+    elif rollouts == "scripted":
         from vkgrl_newton.agents.evaluation import ScriptedDeltaPolicy
 
         rollout_policy = ScriptedDeltaPolicy(seed=args.seed)

@@ -64,38 +64,30 @@ class ScriptedPolicy(Policy):
         return env.step_pose(*self.inserter.act(env))
 
 
-class ScriptedDeltaPolicy(Policy):
+class ScriptedDeltaPolicy(ScriptedPolicy):
     """The scripted demonstrator acting through the SAC action space: each control step its pose
     command becomes the actions whose smoothed value commands that pose at the step's first physics
     step (AssemblyEnv.actions_for_command; the delta mapping then follows the TCP through the step,
     so it is not the demonstrator's own controller, and the smoothing lags its fast changes). The
-    demonstrator's per-world state restarts where an episode starts (step 0, in `actions`), so it also
-    acts in a SAC run's first transitions (SACConfig.prior_rollouts_policy "scripted": RLPD's
-    demonstrations in a buffer of their own)."""
+    demonstrator restarts per world where an episode starts (step 0, in `actions`), so it also acts in
+    a SAC run's first transitions (SACConfig.prior_rollouts_policy "scripted": RLPD's demonstrations
+    in a buffer of their own)."""
 
     def __init__(self, seed: int = 0):
-        from ..envs.scripted import ScriptedInserter
-
-        self.inserter = ScriptedInserter(seed=seed)
+        super().__init__(seed)
         self._started = False
 
     def reset(self, env, mask: torch.Tensor | None = None) -> None:
-        """The demonstrator's state restarted in the worlds of `mask` (all when None)."""
-        old = dict(vars(self.inserter)) if self._started and mask is not None else None
-        self.inserter.reset(env)
+        """The demonstrator restarted in the worlds of `mask` (all when None)."""
+        self.inserter.reset(env, mask if self._started else None)
         self._started = True
-        if old is not None:  # the other worlds keep their episode's state
-            for name, value in vars(self.inserter).items():
-                if isinstance(value, torch.Tensor) and value.ndim >= 1 and value.shape[0] == env.num_envs:
-                    m = mask.view(-1, *([1] * (value.ndim - 1)))
-                    setattr(self.inserter, name, torch.where(m, value, old[name]))
 
     def actions(self, env, obs) -> torch.Tensor:
         """(E, D) actions in [-1, 1] for this control step (the SAC action space)."""
         start = env.episode_length_buf == 0
         # one host read a step, only while it acts (a SAC run's first prior_rollouts transitions)
         if not self._started or bool(start.any()):
-            self.reset(env, start if self._started else None)
+            self.reset(env, start)
         return env.actions_for_command(*self.inserter.act(env))
 
     def step(self, env, obs):

@@ -97,7 +97,8 @@ class ScriptedParams:
 
 
 class ScriptedInserter:
-    """Batched over the env's worlds. Call `reset(env)` after each env reset, then `act(env)`."""
+    """Batched over the env's worlds. Call `reset(env)` after each env reset (`reset(env, mask)` after a
+    reset of some worlds), then `act(env)`."""
 
     def __init__(self, params: ScriptedParams | None = None, seed: int = 0):
         self.params = params or ScriptedParams()
@@ -108,7 +109,17 @@ class ScriptedInserter:
         lo, hi = lo_hi
         return lo + (hi - lo) * torch.rand(n, device=device, generator=self._gen)
 
-    def reset(self, env) -> None:
+    def reset(self, env, mask: torch.Tensor | None = None) -> None:
+        """A new episode in every world, or in the worlds of `mask` (E,) bool alone: the others keep their
+        episode's state (the draws are made for all worlds either way, so the random stream is the same)."""
+        old = dict(vars(self)) if mask is not None and self._gen is not None else None
+        self._reset_all(env)
+        if old is not None:
+            for name, value in vars(self).items():
+                if isinstance(value, torch.Tensor) and value.ndim >= 1 and value.shape[0] == env.num_envs:
+                    setattr(self, name, torch.where(mask.view(-1, *([1] * (value.ndim - 1))), value, old[name]))
+
+    def _reset_all(self, env) -> None:
         n, dev = env.num_envs, env.tdev
         if self._gen is None:
             self._gen = torch.Generator(device=dev).manual_seed(self.seed)
