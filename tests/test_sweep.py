@@ -246,3 +246,22 @@ def test_sigterm_to_the_driver_marks_trials_interrupted_and_a_restart_resumes_th
     assert again.returncode == 0, log
     assert state(trial)["attempts"] == 2 and state(trial)["resumed"] is True
     assert_finished(trial, resumed=True, killed_at_least=150)
+
+
+def test_status_into_a_closed_pipe_ends_quietly(tmp_path):
+    """`sweep.py --status | head -1`: the reader leaves before the lines are written; the status
+    ends without a BrokenPipeError traceback (it printed one before)."""
+    out = tmp_path / "sweep"
+    out.mkdir()
+    grid = {"tasks": ["PegInsert", "GearMesh"], "envs": ["factory"], "action_dims": [4], "methods": ["sac"],
+            "seeds": list(range(50))}  # 100 trials: more lines than the reader takes
+    (out / "sweep.json").write_text(json.dumps({"grid": grid, "run_args": []}))
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader is gone before the first line
+    try:
+        proc = subprocess.run([sys.executable, str(ROOT / "train" / "sweep.py"), "--out", str(out), "--status"],
+                              cwd=ROOT, stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr, proc.stderr
+    assert proc.returncode == 0

@@ -334,12 +334,17 @@ def sweep_summary(trials: list[dict]) -> dict:
 
 def print_status(trials: list[dict]) -> int:
     counts: dict[str, int] = {}
+    lines = []
     for t in trials:
         state, transitions = trial_status(t)
         counts[state] = counts.get(state, 0) + 1
         attempts = read_trial_state(Path(t["run_dir"])).get("attempts", 0)
-        print(f"{state:8s} {t['name']:40s} {transitions:9d} transitions  attempts {attempts}")
-    print("  ".join(f"{k}: {v}" for k, v in sorted(counts.items())))
+        lines.append(f"{state:8s} {t['name']:40s} {transitions:9d} transitions  attempts {attempts}")
+    lines.append("  ".join(f"{k}: {v}" for k, v in sorted(counts.items())))
+    try:
+        print("\n".join(lines), flush=True)
+    except BrokenPipeError:  # `--status | head`: the reader has left; end quietly (Python's documented recipe)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 1 if counts.get("failed") else 0
 
 
