@@ -382,3 +382,44 @@ def test_cached_evaluation_computes_once_per_key_and_restores_nan(tmp_path):
     file.write_text("{ damaged")
     _, reused = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
     assert not reused and len(calls) == 3 and json.loads(file.read_text())["result"]["success_rate"] == 0.25
+
+
+def test_behaviour_cloning_term_against_a_float64_computation():
+    """actor_loss with the prior buffer's actions adds bc_weight * mean|Q| * mean |tanh(mean) - a|^2
+    over the last rows alone (TD3+BC's scaling), on the same draw of the policy's sample."""
+    a = agent(prior_rollouts=32, prior_ratio=0.25, bc_weight=0.4, cpu_matmul="torch")
+    obs, alpha = torch.randn(16, 3, generator=torch.Generator().manual_seed(5)), torch.tensor(0.2)
+    demo = torch.tensor([[0.5, -0.25]] * 4)  # the actions of the last 4 rows
+    state = a.generator.get_state()
+    plain, _ = a.actor_loss(obs, alpha)
+    a.generator.set_state(state)
+    with_bc, _ = a.actor_loss(obs, alpha, demo)
+    a.generator.set_state(state)  # the same draw, by hand in float64
+    mean, log_std = (t.double() for t in a.actor(obs))
+    u = mean + log_std.exp() * torch.randn(mean.shape, generator=a.generator).double()
+    q = a.critic(obs, torch.tanh(u).float()).detach().double().min(dim=0).values
+    want = 0.4 * q.abs().mean() * (torch.tanh(mean[-4:]) - demo.double()).square().sum(-1).mean()
+    assert float(want.detach()) > 1e-3  # a term that is there
+    # float32 loss terms of magnitude ~|Q|: a few ulps of each, summed over 16 rows
+    assert float((with_bc - plain).detach()) == pytest.approx(float(want.detach()), rel=1e-4, abs=1e-5)
+    with pytest.raises(ValueError, match="bc_weight > 0 clones"):
+        make_sac_config("quick", bc_weight=0.4)
+    with pytest.raises(ValueError, match="bc_weight=-1"):
+        make_sac_config("quick", bc_weight=-1.0, prior_rollouts=8, prior_ratio=0.5)
+
+
+def test_behaviour_cloning_pulls_the_actor_to_the_prior_buffers_actions():
+    """The update clones the prior buffer's rows and only those: with the demonstrator at d and the
+    online data at -d (rewards alike), the deterministic action on the demonstration states ends near d,
+    for d = +0.6 and for d = -0.6, whichever way the critic's own extrapolation leans."""
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(128, 3, generator=g)
+    for d in (0.6, -0.6):
+        a = agent(prior_rollouts=64, prior_ratio=0.5, bc_weight=2.0, policy_delay=1, gradient_steps=300,
+                  init_alpha=0.01, learning_starts=64)
+        for k in range(8):  # 4 batches of demonstrations (d), then 4 online batches (-d)
+            act = torch.full((16, 2), d if k < 4 else -d)
+            a.add(obs[16 * k:16 * (k + 1)], act, torch.ones(16), obs[16 * k:16 * (k + 1)], torch.zeros(16))
+        a.update()
+        final = a.act(obs[:64], deterministic=True)
+        assert (final - d).abs().max() < 0.15, (d, final)

@@ -329,8 +329,11 @@ class SAC:
         loss = 0.5 * (q - target).square().mean(dim=1).sum()  # SB3/SBX: 0.5 sum_i MSE_i
         return loss, q, target
 
-    def actor_loss(self, obs: torch.Tensor, alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """E[alpha log pi(a|s) - min_i Q_i(s, a)], plus cfg.prior_reg * E|tanh(mean)|^2 (toward a = 0)."""
+    def actor_loss(self, obs: torch.Tensor, alpha: torch.Tensor,
+                   bc_action: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """E[alpha log pi(a|s) - min_i Q_i(s, a)], plus cfg.prior_reg * E|tanh(mean)|^2 (toward a = 0),
+        plus, with bc_action (the actions of obs's last len(bc_action) rows, the prior buffer's),
+        cfg.bc_weight * mean|Q| * E|tanh(mean) - bc_action|^2 over those rows (TD3+BC's scaling)."""
         mean, log_std = self.actor(obs)  # Actor.sample's draw, with the mean kept for the penalty
         u = mean + log_std.exp() * torch.randn(mean.shape, generator=self.generator, device=mean.device)
         log_pi = squashed_log_prob(u, mean, log_std)
@@ -338,6 +341,9 @@ class SAC:
         loss = (alpha * log_pi - q).mean()
         if self.cfg.prior_reg:
             loss = loss + self.cfg.prior_reg * torch.tanh(mean).square().sum(-1).mean()
+        if self.cfg.bc_weight and bc_action is not None and len(bc_action):
+            bc = (torch.tanh(mean[-len(bc_action):]) - bc_action).square().sum(-1).mean()
+            loss = loss + self.cfg.bc_weight * q.detach().abs().mean() * bc
         return loss, log_pi
 
     # --- training ------------------------------------------------------------------------------
@@ -352,6 +358,7 @@ class SAC:
             raise ValueError(f"num_gradient_steps={steps} must be >= 1")
         # All minibatches in one draw and one normalization (stats change only in `add`).
         b = self.sample(steps, bs)
+        n_prior = self.prior_rows(bs)  # the last n_prior rows of each minibatch are the prior buffer's
         obs = self.normalize(b.obs).view(steps, bs, -1)
         next_obs = self.normalize(b.next_obs).view(steps, bs, -1)
         action, reward, term = b.action.view(steps, bs, -1), b.reward.view(steps, bs), b.terminated.view(steps, bs)
@@ -365,7 +372,7 @@ class SAC:
             soft_update_(self._target_params, self._online_params, cfg.tau)
             critic_stats.append(torch.stack([loss_q.detach(), q.detach().mean()]))
             if self.num_updates % cfg.policy_delay == 0 and (self.rewarded or not cfg.actor_after_reward):
-                loss_pi, log_pi = self.actor_loss(obs[k], alpha)
+                loss_pi, log_pi = self.actor_loss(obs[k], alpha, action[k, bs - n_prior:] if n_prior else None)
                 self.actor_optim.zero_grad(set_to_none=True)
                 loss_pi.backward()  # actor weights only: the critic is frozen in actor_loss
                 self.actor_optim.step()
@@ -383,11 +390,17 @@ class SAC:
         cl, qm, al, tl, ent, alpha = stats.tolist()
         return {"critic_loss": cl, "actor_loss": al, "alpha_loss": tl, "alpha": alpha, "q_mean": qm, "entropy": ent}
 
+    def prior_rows(self, batch_size: int) -> int:
+        """Rows of a minibatch drawn from the prior buffer (the last ones): 0 while it is empty."""
+        if self.prior_buffer is None or len(self.prior_buffer) == 0:
+            return 0
+        return int(round(self.cfg.prior_ratio * batch_size))
+
     def sample(self, steps: int, batch_size: int) -> Batch:
         """steps x batch_size rows; with a filled prior buffer, round(prior_ratio * batch_size) of
         each minibatch come from it (RLPD's symmetric sampling at 0.5), the rest online."""
-        n_prior = int(round(self.cfg.prior_ratio * batch_size)) if self.prior_buffer is not None else 0
-        if n_prior == 0 or len(self.prior_buffer) == 0:
+        n_prior = self.prior_rows(batch_size)
+        if n_prior == 0:
             return self.buffer.sample(steps * batch_size, self.generator)
         online = self.buffer.sample(steps * (batch_size - n_prior), self.generator)
         prior = self.prior_buffer.sample(steps * n_prior, self.generator)

@@ -93,6 +93,12 @@ class SACConfig:
     # "search" and "scripted" keep per-world state that a checkpoint does not hold: a run resumed inside
     # its first prior_rollouts transitions restarts them from where each world is (those episodes differ).
     prior_rollouts_policy: str = "prior"
+    # Behaviour cloning on the prior buffer's rows of every actor minibatch (for sac with
+    # prior_rollouts_policy="scripted": the demonstrator's actions; for KGRL: a = 0 or the search's):
+    # the actor's loss gains bc_weight * mean|Q| * E_prior |tanh(mean(s)) - a|^2. Scaled by the
+    # critic's magnitude (detached), as TD3+BC (Fujimoto & Gu 2021) balances the two, so that one
+    # weight fits any reward scale: 0.4 is their alpha = 2.5. Needs prior_ratio > 0. 0: none (thesis, RLPD).
+    bc_weight: float = 0.0
     # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel) or
     # "torch" (MKL; its AVX2 path on AMD). Not a hyperparameter: float32 last bits differ.
     cpu_matmul: str = "onednn"
@@ -136,9 +142,14 @@ class SACConfig:
         if not 0.0 <= self.prior_ratio < 1.0:
             raise ValueError(f"SACConfig.prior_ratio={self.prior_ratio!r} must be in [0, 1)")
         for name in ("lr", "init_alpha", "obs_norm_eps", "weight_decay", "log_std_min", "log_std_max", "gamma", "tau",
-                     "prior_reg", "prior_ratio"):
+                     "prior_reg", "prior_ratio", "bc_weight"):
             if not math.isfinite(float(getattr(self, name))):
                 raise ValueError(f"SACConfig.{name}={getattr(self, name)!r} must be finite")
+        if not self.bc_weight >= 0:
+            raise ValueError(f"SACConfig.bc_weight={self.bc_weight!r} must be >= 0")
+        if self.bc_weight > 0 and self.prior_ratio == 0:
+            raise ValueError("SACConfig.bc_weight > 0 clones the prior buffer's actions: give prior_ratio > 0 "
+                             "(and prior_rollouts) so that minibatches hold them")
         if not self.prior_reg >= 0:
             raise ValueError(f"SACConfig.prior_reg={self.prior_reg!r} must be >= 0")
         if self.weight_decay < 0:
