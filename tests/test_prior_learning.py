@@ -423,3 +423,27 @@ def test_behaviour_cloning_pulls_the_actor_to_the_prior_buffers_actions():
         a.update()
         final = a.act(obs[:64], deterministic=True)
         assert (final - d).abs().max() < 0.15, (d, final)
+
+
+def test_agent_policy_acts_with_the_mean_or_with_samples(capsys):
+    """evaluate.py --stochastic: AgentPolicy(deterministic=False) acts with the agent's own samples
+    (its generator's draws, as in training), the default with tanh of the mean."""
+    from vkgrl_newton.agents.evaluation import AgentPolicy
+
+    class Echo:  # an env whose step returns the action it was given
+        def step(self, action):
+            return action
+
+    a = agent()
+    obs = torch.randn(8, 3, generator=torch.Generator().manual_seed(3))
+    mean = AgentPolicy(a).step(Echo(), obs)
+    assert torch.equal(mean, a.act(obs, deterministic=True))
+    state = a.generator.get_state()
+    sampled = AgentPolicy(a, deterministic=False).step(Echo(), obs)
+    a.generator.set_state(state)
+    assert torch.equal(sampled, a.act(obs)) and not torch.allclose(sampled, mean)
+    from scripts import load_script
+
+    with pytest.raises(SystemExit):  # a policy of its own has no samples to draw
+        load_script("evaluate").main(["--stochastic", "--device", "cpu"])
+    assert "--stochastic samples a trained policy's actions: give --checkpoint" in capsys.readouterr().err

@@ -12,7 +12,7 @@ Policies: `scripted` (privileged demonstrator, absolute TCP poses through `step_
 KMP prior alone, zeta = 0, fitted as train/run.py does), `kmp_search` (the prior plus a blind spiral
 search once the part is blocked, from the observation alone, in a null space with reach floors of its
 own: agents.evaluation.KMPSearchPolicy, a baseline of what the KGRL action space holds). `--checkpoint` evaluates a trained
-agent deterministically; task, method, family, action space and time ablation come from the
+agent deterministically (`--stochastic`: with samples of its actions, as in training); task, method, family, action space and time ablation come from the
 checkpoint. Metrics per episode (all worlds end together): success at the episode's last step
 (`success_rate`), success at any step (`success_rate_any`), mean contact force (thesis eq. 6.1,
 N), peak contact force, time to first success (s, over the episodes that reached it), episode
@@ -48,6 +48,9 @@ def main(argv=None) -> int:
     ap.add_argument("--action-dim", type=int, default=6, choices=ACTION_DIMS)
     ap.add_argument("--policy", default="scripted", choices=POLICIES)
     ap.add_argument("--checkpoint", type=Path, default=None, help="a train/run.py checkpoint (replaces --policy)")
+    ap.add_argument("--stochastic", action="store_true",
+                    help="with --checkpoint: act with samples of the policy (as in training) instead of its mean; "
+                         "the draws follow --seed")
     ap.add_argument("--num-envs", type=positive_int, default=16)
     ap.add_argument("--episodes", type=positive_int, default=2)
     ap.add_argument("--seed", type=int, default=0, help="the env's construction and the scripted/random policies' draws")
@@ -76,6 +79,8 @@ def main(argv=None) -> int:
         if out is not None and out.exists():
             ap.error(f"--{name} {out} exists; choose another path (results are never overwritten)")
 
+    if args.stochastic and args.checkpoint is None:
+        ap.error("--stochastic samples a trained policy's actions: give --checkpoint")
     payload = None
     if args.checkpoint is not None:
         from vkgrl_newton.agents.checkpoint import load_checkpoint
@@ -159,7 +164,8 @@ def main(argv=None) -> int:
 
             agent = SAC(meta["obs_dim"], meta["action_dim"], SACConfig(**meta["sac"]), device=env.tdev, seed=args.seed)
         agent.load_state_dict(payload["agent"])
-        policy = AgentPolicy(agent, action_path, time_obs=meta["time_obs"])
+        torch.manual_seed(args.seed)  # PPO samples from torch's global generator, SAC from its own (seed)
+        policy = AgentPolicy(agent, action_path, time_obs=meta["time_obs"], deterministic=not args.stochastic)
     else:
         policy = {"scripted": lambda: ScriptedPolicy(seed=args.seed), "random": lambda: RandomPolicy(seed=args.seed),
                   "scripted_delta": lambda: ScriptedDeltaPolicy(seed=args.seed),
@@ -176,7 +182,7 @@ def main(argv=None) -> int:
                       desc=f"{args.policy} {args.env} {args.action_dim}D")
     result.update(task=args.task, env=args.env, action_dim=args.action_dim, policy=args.policy,
                   num_envs=args.num_envs, device=env.device, solver=args.solver, geometry=args.geometry, seed=args.seed,
-                  eval_seed=args.eval_seed,
+                  eval_seed=args.eval_seed, stochastic=args.stochastic,
                   time_obs=not args.no_time_obs, checkpoint=str(args.checkpoint) if args.checkpoint else None)
     if isinstance(policy, KMPSearchPolicy):  # what "kmp_search" meant for this result (its settings may change)
         import dataclasses

@@ -10,7 +10,7 @@ entry point (`env.step` for the SAC path, `env.step_pose` for KGRL and the scrip
 - `KMPPriorPolicy`: the KMP prior alone, zeta = 0 (KGRL with a silent policy).
 - `KMPSearchPolicy`: the prior plus a blind spiral search once the part is blocked, in a floored null
   space, from the observation alone (issue 28's baseline of what the KGRL action space holds).
-- `AgentPolicy`: a trained SAC agent, deterministic (tanh of the mean), on its method's path.
+- `AgentPolicy`: a trained agent, deterministic (tanh of the mean) or sampled, on its method's path.
 
 `evaluate(env, policy, episodes)` runs whole episodes (all worlds together) and returns the
 metrics of train/evaluate.py's JSON; `record_video` renders the task camera along the way.
@@ -227,13 +227,14 @@ class KMPSearchPolicy(Policy):
 
 
 class AgentPolicy(Policy):
-    """A SAC agent acting deterministically; `action_path` is the KGRLActionPath for kgrl methods."""
+    """A trained agent acting deterministically (or with samples of its policy, deterministic=False);
+    `action_path` is the KGRLActionPath for kgrl methods."""
 
-    def __init__(self, agent, action_path=None, time_obs: bool = True):
-        self.agent, self.path, self.time_obs = agent, action_path, time_obs
+    def __init__(self, agent, action_path=None, time_obs: bool = True, deterministic: bool = True):
+        self.agent, self.path, self.time_obs, self.deterministic = agent, action_path, time_obs, deterministic
 
     def step(self, env, obs):
-        a = self.agent.act(policy_observation(obs, self.time_obs), deterministic=True)
+        a = self.agent.act(policy_observation(obs, self.time_obs), deterministic=self.deterministic)
         return self.path.step(a) if self.path is not None else env.step(a)
 
 
