@@ -267,3 +267,44 @@ def test_curves_draw_a_labelled_variant_as_its_own_line():
     base = {"method": "kgrl", "time_obs": True}
     assert group_label(base) == "kgrl" and group_label({**base, "label": "reach3"}) == "kgrl+reach3"
     assert group_label({**base, "label": "reach3", "time_obs": False}) == "kgrl+reach3 (no time obs)"
+
+
+def test_a_report_reads_its_copy_of_the_runs_again(report_py, runs, tmp_path):
+    """A report keeps a copy of the runs it read: given alone (the run directories gone) it yields
+    the same tables and statistics; given with the runs themselves each run counts once; given with a
+    later run, that run joins its cell; two runs sharing their last two path names get distinct copies."""
+    first = tmp_path / "first"
+    report_py.main([str(runs), "--out", str(first), "--reps", "300"])
+    copy = first / "runs" / "PegInsert_factory_4d_kgrl" / "seed2"
+    for f in ("config.json", "metrics.json", "curves.jsonl"):
+        assert (copy / f).read_bytes() == (runs / "PegInsert_factory_4d_kgrl" / "seed2" / f).read_bytes()
+    moved = tmp_path / "elsewhere"
+    runs.rename(moved)  # the run directories are gone from where the report read them
+    again = tmp_path / "again"
+    report_py.main([str(first), "--out", str(again), "--reps", "300"])
+    for f in ("results.csv", "tables.md"):
+        assert (again / f).read_text() == (first / f).read_text(), f
+    stats, stats_again = (json.loads((r / "stats.json").read_text()) for r in (first, again))
+    for m in ("kgrl", "sac"):  # the point estimates (the intervals are resampled)
+        assert stats_again["iqm"][m]["value"] == stats["iqm"][m]["value"]
+    both = tmp_path / "both"
+    report_py.main([str(moved), str(first), "--out", str(both), "--reps", "300"])
+    assert (both / "results.csv").read_text() == (first / "results.csv").read_text()
+    assert len(report_py.find_runs([moved, first])) == 12 and not any(
+        report_py.is_archived(d) for d in report_py.find_runs([moved, first]))
+    later = tmp_path / "later"
+    write_run(later, 4, "kgrl", 3, (0.1, 1.0, NAN, 1.0))
+    merged = tmp_path / "merged"
+    report_py.main([str(first), str(later), "--out", str(merged), "--reps", "300"])
+    r = next(r for r in csv.DictReader((merged / "results.csv").open())
+             if (r["metric"], r["action_dim"], r["method"]) == ("success_rate", "4", "kgrl"))
+    assert int(r["n"]) == 4 and float(r["mean"]) == pytest.approx((0.5 + 0.7 + 0.9 + 0.1) / 4)
+    # the same <configuration>/seed<k> from two sweeps (another label, so not a twin): two copies
+    other = tmp_path / "other_sweep"
+    d = write_run(other, 4, "kgrl", 3, (0.3, 1.0, NAN, 1.0))
+    config = json.loads((d / "config.json").read_text())
+    (d / "config.json").write_text(json.dumps({**config, "label": "x"}))
+    two = tmp_path / "two"
+    report_py.main([str(later), str(other), "--out", str(two), "--reps", "300"])
+    copies = sorted(p.parent.relative_to(two / "runs").as_posix() for p in (two / "runs").rglob("metrics.json"))
+    assert copies == ["PegInsert_factory_4d_kgrl/seed3", "other_sweep__PegInsert_factory_4d_kgrl/seed3"]

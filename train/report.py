@@ -29,6 +29,10 @@ empty directory; nothing is overwritten):
                          eval seed, its mean with a 95 % bootstrap interval over seeds, and pooled
   curves_<task>_<env>_<D>d.png  learning curves, methods overlaid, mean +- std over seeds
                          (vkgrl_newton/results/plots.py, as train/plot_runs.py)
+  runs/                  a copy of each run read (config.json, metrics.json, curves.jsonl) in
+                         runs/<parent>/<run>/: give the report's directory to report.py to read
+                         them again, alone or merged with later runs, once the run directories are
+                         gone (a run found both as itself and as a copy counts once)
 
 The metrics are each run's metrics.json: the deterministic evaluation of its final policy
 (train/evaluate.py's keys). The thesis's values are Tables 6.1-6.4 of the spec as transcribed
@@ -57,7 +61,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton._io import atomic_write, atomic_write_text, current_umask, strict_json  # noqa: E402
 from vkgrl_newton.agents.sac_config import SACConfig  # noqa: E402
-from vkgrl_newton.results.curves import read_curves  # noqa: E402
+from vkgrl_newton.results.curves import CURVES_FILE, read_curves  # noqa: E402
 from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E402
 from vkgrl_newton.results.plots import plot  # noqa: E402
 from vkgrl_newton.results.thesis import METRICS, THESIS_METHOD_NAMES, load_thesis_tables  # noqa: E402
@@ -85,7 +89,9 @@ class MixedCellError(ValueError):
 
 # ----------------------------------------------------------------------------- reading runs
 def find_runs(paths: list[Path]) -> list[Path]:
-    """Finished run directories (config.json and metrics.json) at or under the paths, sorted."""
+    """Finished run directories (config.json and metrics.json) at or under the paths, sorted. A run
+    found twice, as itself and as a report's copy of it (the same config.json and metrics.json),
+    counts once, as itself."""
     found = set()
     for p in paths:
         p = Path(p)
@@ -93,7 +99,47 @@ def find_runs(paths: list[Path]) -> list[Path]:
             raise FileNotFoundError(f"{p} does not exist")
         candidates = [p] if (p / "metrics.json").exists() else [m.parent for m in p.rglob("metrics.json")]
         found.update(d for d in candidates if (d / "config.json").exists())
-    return sorted(found)
+    kept: dict[bytes, Path] = {}
+    for d in sorted(found, key=lambda d: (is_archived(d), d)):  # originals first
+        kept.setdefault((d / "config.json").read_bytes() + b"\0" + (d / "metrics.json").read_bytes(), d)
+    return sorted(kept.values())
+
+
+# A report keeps a copy of the runs it read (their config.json, metrics.json and curves) in
+# <report>/runs/<parent>/<run>/ (a sweep's trial: <configuration>/seed<k>), so that a committed report can be read again and merged
+# with later runs after the run directories themselves are gone: report.py <report> runs/sweeps/more.
+ARCHIVE_DIR = "runs"
+ARCHIVE_NOTE = "ARCHIVE.md"
+ARCHIVED_FILES = ("config.json", "metrics.json", CURVES_FILE)
+
+
+def is_archived(run_dir: Path) -> bool:
+    """Whether the run directory is a report's copy of a run (<report>/runs/<parent>/<run>)."""
+    return (Path(run_dir).parent.parent / ARCHIVE_NOTE).exists()
+
+
+def archive_runs(run_dirs: list[Path], archive: Path) -> None:
+    """Copy each run's config.json, metrics.json and curves.jsonl (its tensorboard scalars where it
+    predates curves.jsonl) to archive/<parent>/<run>; more of the path where two runs share both names."""
+    archive.mkdir()
+    atomic_write_text(archive / ARCHIVE_NOTE, (
+        "# The runs this report read\n\nCopies of each run's config.json, metrics.json and curves.jsonl, "
+        "from:\n\n" + "".join(f"- {d}\n" for d in run_dirs) +
+        "\nGive this report's directory to train/report.py to read them again, with later runs beside them.\n"))
+    taken = set()
+    for d in run_dirs:
+        parts = Path(d).resolve().parts
+        k = 1  # the parents that name the copy: one, more where two runs share the names
+        while (name := "__".join(parts[-1 - k:-1]) + "/" + parts[-1]) in taken:
+            k += 1
+        taken.add(name)
+        copy = archive / name
+        copy.mkdir(parents=True)
+        for f in ARCHIVED_FILES:
+            if (Path(d) / f).exists():
+                shutil.copy2(Path(d) / f, copy / f)
+        if not (Path(d) / CURVES_FILE).exists() and (Path(d) / "tb").is_dir():
+            shutil.copytree(Path(d) / "tb", copy / "tb")
 
 
 def cell_key(config: dict) -> tuple[str, str, int, str]:
@@ -514,6 +560,7 @@ def _write_report_files(run_dirs, cells, thesis, out: Path, reps: int) -> dict:
     for (task, env, dim), dirs in sorted(by_panel.items()):
         name = f"curves_{task}_{env}_{dim}d.png"
         curves[name] = plot(dirs, out / name, title=f"{task} {env} {dim}D")
+    archive_runs(run_dirs, out / ARCHIVE_DIR)
     return {"runs": len(run_dirs), "configurations": len(cells), "stats": stats, "curves": sorted(curves)}
 
 
