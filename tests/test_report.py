@@ -238,6 +238,9 @@ def test_method_pairs_difference_methods_on_the_same_episodes(report_py, tmp_pat
     assert row["over_seeds"]["mean"] == pytest.approx((1 / 3 + 0.75) / 2)
     assert 1 / 3 <= row["over_seeds"]["ci_low"] <= row["over_seeds"]["mean"] <= row["over_seeds"]["ci_high"] <= 0.75
     assert row["pooled"]["mean"] == pytest.approx(4 / 7) and row["pooled"]["n_pairs"] == 7
+    # the pooled means named as the pair's A and B (A: 1 of 7 paired episodes, B: 5 of 7)
+    assert (row["pooled"]["a_mean"], row["pooled"]["b_mean"]) == pytest.approx((1 / 7, 5 / 7))
+    assert "a_mean" not in row["over_seeds"] and "b_mean" not in row["over_seeds"]
     assert (row["a_success"], row["b_success"]) == pytest.approx(((1 / 3 + 0) / 2, (2 / 3 + 0.75) / 2))
     assert "| sac+a | sac+b | 2 | 0.167 | 0.708 | +0.542 [" in (out / "method_pairs.md").read_text()
 

@@ -416,12 +416,23 @@ def method_pair_rows(cells: dict, reps: int) -> list[dict]:
                     "seeds": [a["seed"] for a, _ in pairs], "seed_differences": diffs.tolist(),
                     "a_success": float(np.mean([g["b_mean"] for g in per_seed], dtype=np.float64)),
                     "b_success": float(np.mean([g["a_mean"] for g in per_seed], dtype=np.float64)),
-                    "over_seeds": {**paired_gain(diffs, np.zeros_like(diffs), reps=reps, seed=0),
+                    "over_seeds": {**_without_means(paired_gain(diffs, np.zeros_like(diffs), reps=reps, seed=0)),
                                    **({"ci_low": None, "ci_high": None} if len(pairs) < 2 else {})},
-                    "pooled": paired_gain(np.concatenate([b["outcomes"] for _, b in pairs]),
-                                          np.concatenate([a["outcomes"] for a, _ in pairs]), reps=reps, seed=0),
+                    "pooled": _a_and_b(paired_gain(np.concatenate([b["outcomes"] for _, b in pairs]),
+                                                   np.concatenate([a["outcomes"] for a, _ in pairs]),
+                                                   reps=reps, seed=0)),
                 })
     return rows
+
+
+def _without_means(gain: dict) -> dict:
+    """An interval over per-seed differences: its a_mean and b_mean (the differences' mean and 0) say nothing."""
+    return {k: v for k, v in gain.items() if k not in ("a_mean", "b_mean")}
+
+
+def _a_and_b(gain: dict) -> dict:
+    """paired_gain(B, A) with a_mean and b_mean named as the pair's A and B (A's success is its b_mean)."""
+    return {**gain, "a_mean": gain["b_mean"], "b_mean": gain["a_mean"]}
 
 
 def method_pairs_markdown(rows: list[dict]) -> str:
