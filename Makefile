@@ -35,7 +35,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q tests
 
 bench: $(STAMP)
-	$(PY) -m vkgrl_newton.kernels.bench
+	$(PY) -m vkgrl_newton.tools.bench_kernels
 
 clean-venv:
 	rm -rf $(VENV)

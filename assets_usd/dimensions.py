@@ -18,6 +18,10 @@ from __future__ import annotations
 
 import math
 
+# Apart from vkgrl_newton/tasks.py (the thesis's per-task training facts): this is the authored-asset geometry that
+# author.py writes into the USD stages and the sim and env read back, one source for both, at the bottom of the
+# data flow (assets -> sim -> env), below tasks; it is per part and posture, not per training parameter.
+
 __all__ = [
     "FACTORY_RESET_JOINTS", "FACTORY_NULL_JOINTS", "FIXED_ASSET_NOMINAL_POS", "FIXED_ASSET_PRIM",
     "TABLE_HALF", "TABLE_POS",

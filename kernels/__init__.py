@@ -1,9 +1,10 @@
 """Custom Warp kernels (installed as vkgrl_newton.kernels). Warp arrays in, warp arrays out;
-no task, config or torch knowledge. `python -m vkgrl_newton.kernels.bench` times them."""
+no task, config or torch knowledge. `python -m vkgrl_newton.tools.bench_kernels` times them."""
 
 import importlib
 
-# lazy (PEP 562): `python -m vkgrl_newton.kernels.bench --help` answers without loading Warp
+# lazy (PEP 562): importing vkgrl_newton.kernels (e.g. for `python -m vkgrl_newton.tools.bench_kernels --help`)
+# does not load Warp
 _LAZY = {name: "vkgrl_newton.kernels.kmp_horizon" for name in ("kmp_horizon_pose", "kmp_horizon_pose_kernel", "vec6f",
                                                                "mat66f")}
 

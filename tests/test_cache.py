@@ -41,10 +41,10 @@ def test_two_vision_runs_collect_and_train_once(tmp_path):
 
 
 def test_a_changed_demonstrator_version_names_new_cache_entries(monkeypatch, tmp_path):
-    from vkgrl_newton.agents.kgrl import demos_path_for
+    from vkgrl_newton.prepare.prior import demos_path_for
     from vkgrl_newton.envs import scripted
-    from vkgrl_newton.vision.collect import default_image_dir
-    from vkgrl_newton.vision.pipeline import VISION_PRESETS, default_vae_dir
+    from vkgrl_newton.prepare.images import default_image_dir
+    from vkgrl_newton.prepare.vision import VISION_PRESETS, default_vae_dir
 
     def names():
         return (demos_path_for(tmp_path, "PegInsert", 16, 0),

@@ -132,7 +132,7 @@ def test_sigterm_checkpoints_a_real_run_and_resume_continues(tmp_path):
 def test_bench_refuses_an_existing_json_before_running(tmp_path):
     existing = tmp_path / "mine.json"
     existing.write_text("user data")
-    out = subprocess.run([sys.executable, "-m", "vkgrl_newton.kernels.bench", "--json", str(existing)], cwd=ROOT,
+    out = subprocess.run([sys.executable, "-m", "vkgrl_newton.tools.bench_kernels", "--json", str(existing)], cwd=ROOT,
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 2 and "exists; choose another path" in out.stderr.strip().splitlines()[-1]
     assert existing.read_text() == "user data" and "kernel" not in out.stdout  # nothing was benchmarked
@@ -224,9 +224,9 @@ DEVICE_CASES = [  # (command, its device flag): every CLI that takes a device
     (["train/evaluate.py", "--policy", "kmp_prior", "--json", "{tmp}/e.json"], "--device"),
     (["train/collect_demos.py", "--out", "{tmp}/d.npz"], "--device"),
     (["train/collect_images.py", "--out", "{tmp}/images"], "--device"),
-    (["-m", "vkgrl_newton.envs.throughput"], "--device"),
-    (["-m", "vkgrl_newton.agents.bench_sac"], "--device"),
-    (["-m", "vkgrl_newton.kernels.bench", "--json", "{tmp}/b.json"], "--devices"),
+    (["-m", "vkgrl_newton.tools.throughput"], "--device"),
+    (["-m", "vkgrl_newton.tools.bench_sac"], "--device"),
+    (["-m", "vkgrl_newton.tools.bench_kernels", "--json", "{tmp}/b.json"], "--devices"),
 ]
 
 

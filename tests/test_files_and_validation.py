@@ -123,7 +123,7 @@ def test_clis_keep_warp_quiet_unless_verbose(tmp_path):
     import sys
 
     def run(*extra):
-        argv = [sys.executable, "-m", "vkgrl_newton.kernels.bench", "--batch", "1", "--devices", "cpu", "--warmup", "1",
+        argv = [sys.executable, "-m", "vkgrl_newton.tools.bench_kernels", "--batch", "1", "--devices", "cpu", "--warmup", "1",
                 "--repeats", "1", "--only", "kmp_horizon", "--json", str(tmp_path / f"b{len(extra)}.json"), *extra]
         out = subprocess.run(argv, capture_output=True, text=True, timeout=300,
                              env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})

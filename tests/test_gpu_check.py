@@ -1,4 +1,4 @@
-"""vkgrl_newton.gpu_check on the CPU with small sizes: the report it writes and the inputs it refuses
+"""vkgrl_newton.tools.gpu_check on the CPU with small sizes: the report it writes and the inputs it refuses
 (on a CUDA machine the same command runs the full sizes)."""
 
 import json
@@ -7,7 +7,7 @@ import pytest
 
 
 def test_cpu_report(wp_cpu, tmp_path):
-    from vkgrl_newton import gpu_check
+    from vkgrl_newton.tools import gpu_check
 
     out = tmp_path / "r.json"
     rc = gpu_check.main(["--device", "cpu", "--worlds", "2", "--steps", "2", "--tasks", "PegInsert",
@@ -35,7 +35,7 @@ def test_cpu_report(wp_cpu, tmp_path):
 
 
 def test_parts_skipped_on_cpu_and_bad_inputs_refused(wp_cpu, tmp_path, capsys):
-    from vkgrl_newton import gpu_check
+    from vkgrl_newton.tools import gpu_check
 
     # an existing report is never overwritten
     out = tmp_path / "old.json"
@@ -61,3 +61,11 @@ def test_parts_skipped_on_cpu_and_bad_inputs_refused(wp_cpu, tmp_path, capsys):
     rc = gpu_check.main(["--device", "cpu", "--checks", "parts_mesh", "--out", str(tmp_path / "p.json")])
     report = json.loads((tmp_path / "p.json").read_text())
     assert rc == 0 and report["checks"] == {"parts_mesh": {"skipped": "cpu: mesh SDF needs CUDA"}}
+
+
+def test_old_module_path_forwards_to_the_tool():
+    """`python -m vkgrl_newton.gpu_check` and `from vkgrl_newton import gpu_check` still reach the tool."""
+    from vkgrl_newton import gpu_check as old
+    from vkgrl_newton.tools import gpu_check
+
+    assert old.main is gpu_check.main and old.cli is gpu_check.cli and old.CHECKS == gpu_check.CHECKS

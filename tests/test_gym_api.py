@@ -148,8 +148,11 @@ def test_rsl_rl_ppo_runs_in_the_prior_null_space_and_its_checkpoint_reloads(peg4
     iterations of 16 steps x 2 worlds, saved, loaded into a fresh runner: the same actions."""
     from rsl_rl.runners import OnPolicyRunner
 
-    from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
-    from vkgrl_newton.agents.ppo import FACTORY_PPO, KGRLVecEnv, ppo_train_cfg
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
+
+    from vkgrl_newton.prepare.prior import load_or_make_prior
+    from vkgrl_newton.agents.ppo import FACTORY_PPO, ppo_train_cfg
+    from vkgrl_newton.envs.rsl_rl import KGRLVecEnv
 
     cfg = ppo_train_cfg("PegInsert", "factory", 2, num_steps_per_env=16)
     assert cfg["algorithm"]["num_mini_batches"] == 1 and cfg["algorithm"]["gamma"] == 0.995

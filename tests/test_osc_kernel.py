@@ -364,9 +364,9 @@ def test_singular_hand_jacobian_gives_finite_bounded_torque(wp_cpu):
 
 @pytest.fixture(scope="module")
 def franka(wp_cpu):
-    """Six Franka worlds (Newton model from kernels/bench.py) with their Jacobian and mass matrix."""
+    """Six Franka worlds (Newton model from vkgrl_newton/tools/bench_kernels.py) with their Jacobian and mass matrix."""
     newton = pytest.importorskip("newton")
-    from vkgrl_newton.kernels.bench import franka_model
+    from vkgrl_newton.tools.bench_kernels import franka_model
 
     model, state = franka_model(6, "cpu", seed=1)
     jac = newton.eval_jacobian(model, state)
@@ -430,7 +430,7 @@ def test_franka_model_conventions(franka):
     velocity, angular velocity, world); the fingers do not move the hand."""
     import newton
 
-    from vkgrl_newton.kernels.bench import franka_builder
+    from vkgrl_newton.tools.bench_kernels import franka_builder
 
     builder = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     builder.replicate(franka_builder(), 1)

@@ -1,5 +1,5 @@
 """GearMesh and NutThread parts: what the stages hold, checked against the published facts and
-brute-force geometry, and what the contact geometry does in the solver (vkgrl_newton.sim.parts).
+brute-force geometry, and what the contact geometry does in the solver (vkgrl_newton.tools.parts).
 
 References: Isaac Lab Factory's factory_tasks_cfg.py (masses 0.012 / 0.03 kg, M16 x 2, 24 mm across
 flats; the medium shaft's offset, dimensions.GEAR_MEDIUM_X), a plan-view polygon test of the gear teeth
@@ -20,7 +20,7 @@ MEDIUM_SHAFT_X = dims.GEAR_MEDIUM_X  # Factory's medium-shaft offset along the g
 
 @pytest.fixture(scope="module")
 def gear_model(wp_cpu):
-    from vkgrl_newton.sim.parts import build_parts
+    from vkgrl_newton.tools.parts import build_parts
 
     return build_parts("GearMesh", num_worlds=2)
 
@@ -28,7 +28,7 @@ def gear_model(wp_cpu):
 @pytest.fixture(scope="module")
 def gear_mesh_model(wp_cpu):
     """The mesh variant on a CPU: no SDFs, the tooth meshes collide through the triangle BVH."""
-    from vkgrl_newton.sim.parts import build_parts
+    from vkgrl_newton.tools.parts import build_parts
     from vkgrl_newton.sim.scene import SimConfig
 
     return build_parts("GearMesh", config=SimConfig(num_worlds=2, device="cpu", geometry="mesh"))
@@ -36,7 +36,7 @@ def gear_mesh_model(wp_cpu):
 
 @pytest.fixture(scope="module")
 def nut_model(wp_cpu):
-    from vkgrl_newton.sim.parts import build_parts
+    from vkgrl_newton.tools.parts import build_parts
 
     return build_parts("NutThread", num_worlds=1)
 
@@ -44,7 +44,7 @@ def nut_model(wp_cpu):
 @pytest.fixture(scope="module")
 def nut_mesh_model(wp_cpu):
     """ISO-profile thread meshes on a CPU: no SDFs, the triangle BVH (scene.THREAD_MESH_GRID)."""
-    from vkgrl_newton.sim.parts import build_parts
+    from vkgrl_newton.tools.parts import build_parts
     from vkgrl_newton.sim.scene import SimConfig
 
     return build_parts("NutThread", config=SimConfig(num_worlds=1, device="cpu", geometry="mesh"))
@@ -180,7 +180,7 @@ def test_nut_advances_one_pitch_per_turn(request, geometry, duration, min_turns,
     """Started resting on the bolt's top thread turn and turned clockwise under a 0.5 N push, the
     nut screws down 2 mm per turn (Factory's M16 x 2) within 10 %, without tilting off the thread.
     Both geometries: the capsule helices and the ISO-profile meshes."""
-    from vkgrl_newton.sim.parts import advance_per_turn, nut_rest_height, run_drive
+    from vkgrl_newton.tools.parts import advance_per_turn, nut_rest_height, run_drive
 
     nut_model = request.getfixturevalue("nut_model" if geometry == "primitives" else "nut_mesh_model")
     yaw0 = math.pi / 2
@@ -196,7 +196,7 @@ def test_nut_advances_one_pitch_per_turn(request, geometry, duration, min_turns,
 
 @pytest.mark.parametrize("geometry, start_depth", [(g, d) for g, _, _, d in NUT_GEOMETRIES])
 def test_nut_does_not_descend_without_turning(request, geometry, start_depth):
-    from vkgrl_newton.sim.parts import nut_rest_height, run_drive
+    from vkgrl_newton.tools.parts import nut_rest_height, run_drive
 
     nut_model = request.getfixturevalue("nut_model" if geometry == "primitives" else "nut_mesh_model")
     yaw0 = math.pi / 2
@@ -212,7 +212,7 @@ def test_gear_slides_when_aligned_and_is_blocked_when_not(request, geometry):
     medium gear seats on the base plate; turned by half a tooth pitch it rests on the neighbours'
     tooth tops, one face width (20 mm) higher. Both collision geometries (the mesh variant's
     tooth meshes meet through the triangle BVH here, no SDF on a CPU)."""
-    from vkgrl_newton.sim.parts import run_drive
+    from vkgrl_newton.tools.parts import run_drive
 
     model = request.getfixturevalue("gear_model" if geometry == "primitives" else "gear_mesh_model")
     pitch = 2 * math.pi / 19

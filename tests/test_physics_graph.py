@@ -133,7 +133,7 @@ def test_contact_overflow_is_counted_and_warned(wp_cpu):
 def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
     import json
 
-    from vkgrl_newton.envs import throughput
+    from vkgrl_newton.tools import throughput
 
     out = tmp_path / "t.json"
     assert throughput.main(["--num-worlds", "1", "--steps", "1", "--warmup", "2", "--device", "cpu",

@@ -428,7 +428,7 @@ def test_behaviour_cloning_pulls_the_actor_to_the_prior_buffers_actions():
 def test_agent_policy_acts_with_the_mean_or_with_samples(capsys):
     """evaluate.py --stochastic: AgentPolicy(deterministic=False) acts with the agent's own samples
     (its generator's draws, as in training), the default with tanh of the mean."""
-    from vkgrl_newton.agents.evaluation import AgentPolicy
+    from vkgrl_newton.envs.evaluation import AgentPolicy
 
     class Echo:  # an env whose step returns the action it was given
         def step(self, action):

@@ -429,7 +429,7 @@ def test_contact_camera_looks_at_the_peg_tip_and_the_latent_renders_the_encoders
     ~9 degrees off), and 1 mm there spans about a pixel at 64 px. CameraLatent renders the camera
     its encoder's images came from, and refuses one of another resolution."""
     from vkgrl_newton.sim.camera import CONTACT_CAMERAS, TASK_CAMERAS, TaskCamera
-    from vkgrl_newton.vision.latent import CameraLatent
+    from vkgrl_newton.envs.camera_latent import CameraLatent
     from vkgrl_newton.vision.vae import DenoisingVAE, FrozenEncoder, VAEConfig
 
     env = ensure_fresh(peg_env)

@@ -81,10 +81,10 @@ def test_gear_scripted_episode_meshes(gear_episode):
 def test_gear_contact_camera_sees_the_target_shaft_and_the_baseline_measures_only_it(gear_episode):
     """GearMesh's contact camera (the quick preset's) sees the shaft the held gear goes onto, which
     Table 5.6's camera, looking down the gripper axis onto the held gear, does not; and the near-hole
-    probe's pixel baseline measures the shaft's pixels alone (vision.collect.FIXED_PIXEL_PARTS), not
+    probe's pixel baseline measures the shaft's pixels alone (prepare.images.FIXED_PIXEL_PARTS), not
     the whole gear base. Reference: the authored stage's shape labels."""
     from vkgrl_newton.sim.camera import CONTACT_CAMERAS, TASK_CAMERAS, TaskCamera
-    from vkgrl_newton.vision.collect import part_shape_ids
+    from vkgrl_newton.prepare.images import part_shape_ids
 
     env, _, _ = gear_episode
     env.reset()  # the gear above its shaft, as at the start of an episode

@@ -73,7 +73,7 @@ def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("action_dim", [4, 6])
 def test_kgrl_action_path_matches_float64_reference(wp_cpu, action_dim):
-    from vkgrl_newton.agents.kgrl import KGRLActionPath
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
 
     tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=action_dim)
     env = fake_env(7, action_dim)
@@ -106,7 +106,7 @@ def test_kgrl_action_path_matches_float64_reference(wp_cpu, action_dim):
 
 
 def test_kgrl_action_path_rejects_mismatched_tables(wp_cpu):
-    from vkgrl_newton.agents.kgrl import KGRLActionPath
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
 
     tables6 = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=6)
     with pytest.raises(ValueError, match="6D"):
@@ -122,7 +122,7 @@ def test_kgrl_action_path_rejects_mismatched_tables(wp_cpu):
 def test_kgrl_action_path_applies_both_reach_floors(wp_cpu):
     """reach_floor (x, y) and reach_floor_z (z) lift those axes' reach to the floors (brute force over the
     action corners is test_prior_learning's); a = 0 still commands the prior's mean."""
-    from vkgrl_newton.agents.kgrl import KGRLActionPath
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
     from vkgrl_newton.kmp.tables import null_space_reach
 
     tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
@@ -143,7 +143,7 @@ def test_kgrl_action_path_applies_both_reach_floors(wp_cpu):
 def test_spiral_offset_is_archimedean_at_the_given_speed():
     """r = b theta (b = pitch / 2 pi), the angle is theta, a turn adds one pitch, and the exact arc length
     s(theta) = b / 2 (theta sqrt(1 + theta^2) + asinh theta) advances by ~speed per step."""
-    from vkgrl_newton.agents.evaluation import spiral_offset
+    from vkgrl_newton.envs.evaluation import spiral_offset
 
     pitch, speed = 1.2e-3, 0.3e-3
     b = pitch / (2 * math.pi)
@@ -167,7 +167,7 @@ def test_kmp_search_policy_keeps_the_prior_until_blocked_then_searches_and_settl
     20 mm high from step 30 (a = 0 until n_min, then a light press and the spiral, checked against a
     float64 computation of eta = m[n] + G[n] zeta), one that drops 0.5 mm while searching (x, y frozen,
     z the prior's from then on). A world whose episode restarts (step 0) starts over alone."""
-    from vkgrl_newton.agents.evaluation import KMPSearchPolicy, SearchParams, spiral_offset
+    from vkgrl_newton.envs.evaluation import KMPSearchPolicy, SearchParams, spiral_offset
 
     tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
     env = fake_env(3, 4)
@@ -427,7 +427,7 @@ def test_scripted_delta_policy_restarts_only_the_worlds_that_start(peg_env):
     """A world reset alone (a blow-up's) mid-episode: at the next `actions` the demonstrator restarts
     there (new draws, approach phase, not started) and every per-world state of the others is what their
     episode had made of it."""
-    from vkgrl_newton.agents.evaluation import ScriptedDeltaPolicy
+    from vkgrl_newton.envs.evaluation import ScriptedDeltaPolicy
 
     env = peg_env
     if int(env.episode_length_buf.max()) > 0:
@@ -679,7 +679,7 @@ def test_run_geometry_is_part_of_a_mesh_runs_identity(run_py, tmp_path):
     scripted demonstrations apart; the default leaves both as before, so older runs still resume."""
     import argparse
 
-    from vkgrl_newton.agents.kgrl import demos_path_for
+    from vkgrl_newton.prepare.prior import demos_path_for
     from vkgrl_newton.agents.sac import SAC_PRESETS
 
     base = dict(task="GearMesh", method="kgrl", env="factory", action_dim=4, seed=0, num_envs=2, preset="quick",

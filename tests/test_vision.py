@@ -488,15 +488,15 @@ def test_presets_and_their_cache_names(tmp_path):
     other settings is never picked up for it."""
     import dataclasses
 
-    from vkgrl_newton.vision.collect import collection_key
-    from vkgrl_newton.vision.pipeline import VISION_PRESETS, VisionPreset, default_vae_dir
+    from vkgrl_newton.prepare.images import collection_key
+    from vkgrl_newton.prepare.vision import VISION_PRESETS, VisionPreset, default_vae_dir
 
     thesis, quick = VISION_PRESETS["thesis"], VISION_PRESETS["quick"]
     assert (thesis.resolution, thesis.num_images, thesis.vae_epochs, thesis.vae_batch_size) == (256, 130_000, 400, 128)
     assert thesis.kl_weight == 1.0 and thesis.group_norm and thesis.vae_config().group_norm
     assert (thesis.camera, thesis.samples_per_pixel) == ("table5.6", 1)  # Table 5.6
     from vkgrl_newton.sim.camera import TASK_CAMERAS
-    from vkgrl_newton.vision.collect import collect_camera_spec
+    from vkgrl_newton.prepare.images import collect_camera_spec
 
     for task, spec in TASK_CAMERAS.items():  # the thesis preset renders Table 5.6's camera at 256 px
         assert collect_camera_spec(thesis.collect_config(task)) == dataclasses.replace(spec, width=256, height=256)
@@ -520,8 +520,8 @@ def test_any_preset_or_collection_change_makes_a_new_cache_entry(tmp_path):
     image-set and VAE entry: an old cache entry is never reused for other settings."""
     import dataclasses
 
-    from vkgrl_newton.vision.collect import CollectConfig, default_image_dir
-    from vkgrl_newton.vision.pipeline import VISION_PRESETS, default_vae_dir
+    from vkgrl_newton.prepare.images import CollectConfig, default_image_dir
+    from vkgrl_newton.prepare.vision import VISION_PRESETS, default_vae_dir
 
     other = {int: lambda v: v + 1, float: lambda v: v * 0.5 + 0.01, bool: lambda v: not v, str: None,
              type(None): None}
@@ -561,7 +561,7 @@ def test_the_pixel_baselines_fixed_shapes_are_part_of_the_cache_key(tmp_path, mo
     """GearMesh's pixel baseline measures its target shaft alone (collect.FIXED_PIXEL_PARTS): that
     choice is in the image set's key, so a set measured with another choice is never reused; the
     tasks without an entry keep the key they had (their baseline is the whole fixed part)."""
-    import vkgrl_newton.vision.collect as collect
+    import vkgrl_newton.prepare.images as collect
 
     gear, peg = collect.CollectConfig(task="GearMesh"), collect.CollectConfig(task="PegInsert")
     before = collect.default_image_dir(tmp_path, gear), collect.default_image_dir(tmp_path, peg)

@@ -1,4 +1,4 @@
-"""The image-set collector (vkgrl_newton/vision/collect.py) on the shared 4-world PegInsert env:
+"""The image-set collector (vkgrl_newton/prepare/images.py) on the shared 4-world PegInsert env:
 the privileged state against a float64 recomputation, and a short collection end to end."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 
 def test_relative_target_state_matches_float64(peg_env):
-    from vkgrl_newton.vision.collect import relative_target_state
+    from vkgrl_newton.prepare.images import relative_target_state
 
     env = peg_env
     env.reset()
@@ -32,7 +32,7 @@ def test_relative_target_state_matches_float64(peg_env):
 
 
 def test_is_scripted_round_schedule():
-    from vkgrl_newton.vision.collect import is_scripted_round
+    from vkgrl_newton.prepare.images import is_scripted_round
 
     for f in (0.0, 0.25, 0.5, 1.0):
         kinds = [is_scripted_round(r, f) for r in range(40)]
@@ -42,7 +42,7 @@ def test_is_scripted_round_schedule():
 
 def test_collect_images_end_to_end(peg_env, tmp_path):
     from vkgrl_newton.vision import ImageSet
-    from vkgrl_newton.vision.collect import CollectConfig, collect_images
+    from vkgrl_newton.prepare.images import CollectConfig, collect_images
 
     cfg = CollectConfig(num_images=30, resolution=32, frame_stride=4, episode_steps=8, val_fraction=0.25,
                         scripted_fraction=0.5)
@@ -88,7 +88,7 @@ def test_collect_images_end_to_end(peg_env, tmp_path):
 
 
 def test_collect_config_errors():
-    from vkgrl_newton.vision.collect import CollectConfig
+    from vkgrl_newton.prepare.images import CollectConfig
 
     with pytest.raises(ValueError, match="scripted_fraction"):
         CollectConfig(scripted_fraction=1.5)
@@ -112,8 +112,8 @@ def test_collect_images_cli_takes_a_presets_collection(tmp_path, monkeypatch):
     from scripts import load_script
 
     from vkgrl_newton.sim.camera import TASK_CAMERAS
-    from vkgrl_newton.vision.collect import collection_key
-    from vkgrl_newton.vision.pipeline import VISION_PRESETS
+    from vkgrl_newton.prepare.images import collection_key
+    from vkgrl_newton.prepare.vision import VISION_PRESETS
 
     cli = load_script("collect_images")
     got = []

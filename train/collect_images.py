@@ -9,7 +9,7 @@ Rolls out the scripted demonstrator with command noise and uniform random action
 writes images.npy (uint8), the privileged relative target pose per image (state.npy, for the
 linear probe only), each frame's geometry and the two parts' pixel measurements (geometry.npy,
 pixels.npy, for the near-hole probe only), episode ids and a train/validation split by episode
-into the new directory `--out` (vkgrl_newton/vision/collect.py, dataset.py). `--preset` takes a
+into the new directory `--out` (vkgrl_newton/prepare/images.py, dataset.py). `--preset` takes a
 vision preset's collection settings (its camera, resolution, count, rounds and split); the
 other flags then change single settings of it. An existing non-empty directory is never
 written into. `train/run.py --method vision_kgrl` collects its own set when none is cached.
@@ -31,8 +31,8 @@ from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.tasks import TASKS  # noqa: E402
 from vkgrl_newton.sim.camera import CAMERA_SETS  # noqa: E402
-from vkgrl_newton.vision.collect import CollectConfig, collect_images  # noqa: E402
-from vkgrl_newton.vision.pipeline import VISION_PRESETS  # noqa: E402
+from vkgrl_newton.prepare.images import CollectConfig, collect_images  # noqa: E402
+from vkgrl_newton.prepare.vision import VISION_PRESETS  # noqa: E402
 from vkgrl_newton.vision.vae import VAE_RESOLUTIONS  # noqa: E402
 
 

@@ -11,7 +11,7 @@ Policies: `scripted` (privileged demonstrator, absolute TCP poses through `step_
 (uniform in [-1, 1]^D) and `zero` (both through the SAC action path `step`), `kmp_prior` (the
 KMP prior alone, zeta = 0, fitted as train/run.py does), `kmp_search` (the prior plus a blind spiral
 search once the part is blocked, from the observation alone, in a null space with reach floors of its
-own: agents.evaluation.KMPSearchPolicy, a baseline of what the KGRL action space holds). `--checkpoint` evaluates a trained
+own: envs.evaluation.KMPSearchPolicy, a baseline of what the KGRL action space holds). `--checkpoint` evaluates a trained
 agent deterministically (`--stochastic`: with samples of its actions, as in training); task, method, family, action space and time ablation come from the
 checkpoint. Metrics per episode (all worlds end together): success at the episode's last step
 (`success_rate`), success at any step (`success_rate_any`), mean contact force (thesis eq. 6.1,
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
 
     import torch
 
-    from vkgrl_newton.agents.evaluation import (AgentPolicy, KMPPriorPolicy, KMPSearchPolicy, RandomPolicy,
+    from vkgrl_newton.envs.evaluation import (AgentPolicy, KMPPriorPolicy, KMPSearchPolicy, RandomPolicy,
                                                 ScriptedDeltaPolicy, ScriptedPolicy, ZeroPolicy, evaluate, write_video)
     from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
     from vkgrl_newton.sim.scene import SimConfig
@@ -139,13 +139,14 @@ def main(argv=None) -> int:
                     vision_latent_dim=encoder.latent_dim if encoder is not None else 0, graph=not args.eager_physics)
     env = AssemblyEnv(cfg)
     if encoder is not None:
-        from vkgrl_newton.vision.latent import CameraLatent
+        from vkgrl_newton.envs.camera_latent import CameraLatent
 
         env.attach_vision(CameraLatent(env, encoder))
     action_path = None
     if args.policy in ("kmp_prior", "kmp_search", "kgrl", "vision_kgrl", "kgrl_ppo"):
-        from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
+        from vkgrl_newton.envs.kgrl_action import KGRLActionPath
 
+        from vkgrl_newton.prepare.prior import load_or_make_prior
         prior = payload["meta"].get("prior", {}) if payload is not None else {}
         tables, _ = load_or_make_prior(args.task, args.action_dim, args.cache_dir, demos=args.demos, device=args.device,
                                        geometry=args.geometry, reference=prior.get("reference", "gmr") if prior else args.kmp_reference,

@@ -65,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="epochs over which the KL weight rises from 0 to --kl-weight (default 0, the thesis)")
     ap.add_argument("--kl-weight", type=positive_float, default=None,
                     help="weight of the KL term (default 1, eq. 4.48; the quick preset uses 0.01 at 64 px, see "
-                         "vkgrl_newton/vision/pipeline.py)")
+                         "vkgrl_newton/prepare/vision.py)")
     ap.add_argument("--no-group-norm", dest="group_norm", action="store_const", const=False, default=None,
                     help="no GroupNorm layers (the quick preset's CPU setting; default: GroupNorm(8) as 5.6.1)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from checkpoints/last.pt")

@@ -10,7 +10,9 @@ import sys
 import tempfile
 from contextlib import contextmanager
 
-__all__ = ["positive_int", "nonnegative_int", "positive_float", "device_name", "DEVICE_FORMS", "stderr_without"]
+__all__ = ["positive_int", "nonnegative_int", "positive_float", "device_name", "DEVICE_FORMS", "stderr_without",
+           "add_verbose_flag", "add_device_option", "add_eager_physics_flag", "add_cache_dir_option",
+           "add_eval_seed_option", "add_kmp_reference_option", "KMP_REFERENCES"]
 
 DEVICE_FORMS = "cpu, cuda, cuda:N"
 _DEVICE = re.compile(r"cpu|cuda(:[0-9]+)?")
@@ -71,3 +73,41 @@ def stderr_without(*needles: str):
                     if not any(n in ln for n in needles)]
             if rest:
                 sys.stderr.write("".join(rest))
+
+
+def add_device_option(parser, help: str = "cpu or cuda:0 (default: cuda:0 when present)") -> None:
+    """`--device`, spelled and checked the same way by every command line."""
+    parser.add_argument("--device", default=None, type=device_name, help=help)
+
+
+def add_eager_physics_flag(parser) -> None:
+    """`--eager-physics`: the physics kernels one by one, the captured graph's reference."""
+    parser.add_argument("--eager-physics", action="store_true",
+                        help="launch the physics kernels one by one instead of replaying one captured graph per "
+                             "control step (bitwise the same results, slower: the reference)")
+
+
+def add_cache_dir_option(parser) -> None:
+    """`--cache-dir`: where the prepared inputs live (vkgrl_newton.cache)."""
+    from pathlib import Path
+
+    parser.add_argument("--cache-dir", type=Path, default=Path("runs/cache"),
+                        help="demonstrations, KMP tables, image sets, VAEs (made on first use, reused)")
+
+
+def add_eval_seed_option(parser, default: int) -> None:
+    """`--eval-seed`: the evaluation episodes' seed, the same meaning in train/run.py and train/evaluate.py."""
+    parser.add_argument("--eval-seed", type=int, default=default,
+                        help="seeds the evaluation episodes: two policies evaluated with one eval seed (and the same "
+                             "task, env, action space and worlds) see identical initial states (default %(default)s)")
+
+
+KMP_REFERENCES = ("gmr", "empirical")
+
+
+def add_kmp_reference_option(parser, default: str | None) -> None:
+    """`--kmp-reference`: the KMP's reference distribution."""
+    parser.add_argument("--kmp-reference", default=default, choices=KMP_REFERENCES,
+                        help="KGRL: the KMP's reference distribution: gmr (the thesis, eqs. 4.2-4.3; default) or "
+                             "empirical (the demonstrations' per-step mean and covariance: a deviation, see "
+                             "docs/log/benchmarks.md); a checkpoint's own wins")

@@ -64,6 +64,7 @@ RUN_METHODS = METHODS + PPO_METHODS
 # (SDFs on CUDA) for the tasks whose primitives are approximations.
 GEOMETRIES = ("primitives", "mesh")
 SOLVERS = ("mujoco", "steel")
+TARGET_OBS_NOISE = 0.001  # m, per axis, per episode: the observed target frame's noise (eq. 5.23 / Factory)
 VISION_LATENT_DIM = 16  # d_z of the thesis's VAE (5.6): the vision methods' latent slot  # sim.scene.SimConfig.solver (here: the CLIs list them before importing the sim)
 MESH_TASKS = ("GearMesh", "NutThread")
 

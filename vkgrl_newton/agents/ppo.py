@@ -1,8 +1,7 @@
-"""rsl-rl's PPO on the assembly env: the agent train/run.py drives, and the KGRL env it acts through.
+"""rsl-rl's PPO: the agent the run's PPO loop drives.
 
-The env is already an rsl-rl `VecEnv` (envs.assembly_env.AssemblyEnv); `KGRLVecEnv` is the same
-env acting in the KMP prior's null space (agents.kgrl.KGRLActionPath), for PPO in the prior's null
-space. The configuration (Isaac Lab Factory's PPO settings, and what differs) is plain data in
+The env is already an rsl-rl `VecEnv` (envs.assembly_env.AssemblyEnv); `envs.rsl_rl.KGRLVecEnv` is
+the same env acting in the KMP prior's null space, for PPO in the prior's null space. The configuration (Isaac Lab Factory's PPO settings, and what differs) is plain data in
 agents/ppo_config.py. `PPOAgent` holds rsl-rl's PPO algorithm as `OnPolicyRunner` builds it, with
 the small interface run.py and the evaluation need: `act`, `state_dict` / `load_state_dict` and the
 count of gradient steps; run.py runs the rollout / update loop itself (OnPolicyRunner.learn's loop)
@@ -19,7 +18,7 @@ from tensordict import TensorDict
 from .ppo_config import FACTORY_PPO, METHOD_PPO_DEFAULTS, MINIBATCH, parse_ppo_overrides, ppo_train_cfg
 
 __all__ = ["FACTORY_PPO", "MINIBATCH", "METHOD_PPO_DEFAULTS", "ppo_train_cfg", "parse_ppo_overrides", "PPOAgent",
-           "KGRLVecEnv", "start_at_prior"]
+           "start_at_prior"]
 
 
 def start_at_prior(alg: PPO) -> None:
@@ -70,33 +69,3 @@ class PPOAgent:
     def load_state_dict(self, state: dict) -> None:
         self.alg.load(state, None, strict=True)
         self.iterations = int(state["iterations"])
-
-
-class KGRLVecEnv(VecEnv):
-    """An AssemblyEnv whose `step(actions)` goes through the KMP prior's null space: a in [-1, 1]^D,
-    a = 0 follows the prior (agents.kgrl.KGRLActionPath). Everything else is the env's own."""
-
-    def __init__(self, env, action_path):
-        if action_path.env is not env:
-            raise ValueError("the action path drives another env")
-        self.env = env
-        self.action_path = action_path
-        self.num_envs, self.num_actions = env.num_envs, env.num_actions
-        self.max_episode_length, self.device, self.cfg = env.max_episode_length, env.device, env.cfg
-
-    @property
-    def episode_length_buf(self):
-        return self.env.episode_length_buf
-
-    @episode_length_buf.setter
-    def episode_length_buf(self, value):  # rsl-rl's init_at_random_ep_len sets it
-        self.env.episode_length_buf = value
-
-    def get_observations(self):
-        return self.env.get_observations()
-
-    def reset(self):
-        return self.env.reset()
-
-    def step(self, actions):
-        return self.action_path.step(actions)

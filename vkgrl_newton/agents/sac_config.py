@@ -84,11 +84,11 @@ class SACConfig:
     # actions knows their value.
     prior_rollouts: int = 0
     # Who acts in those first transitions: "prior" (a = 0, as above) or "search" (KGRL: the prior plus
-    # a blind spiral search once the part is blocked, agents.evaluation.KMPSearchPolicy, through the
+    # a blind spiral search once the part is blocked, envs.evaluation.KMPSearchPolicy, through the
     # run's own action path; it needs z reach, --kgrl-reach-floor-z). A deviation: scripted data beyond
     # the demonstrations, so that the buffer holds blocked parts that were searched for and seated.
     # "scripted" is for the SAC methods (sac, vision_sac), which have no prior: the scripted demonstrator
-    # through the SAC action space (agents.evaluation.ScriptedDeltaPolicy), RLPD's demonstrations kept in
+    # through the SAC action space (envs.evaluation.ScriptedDeltaPolicy), RLPD's demonstrations kept in
     # the second buffer (prior_ratio). A deviation from the thesis's SAC, which learns from its own data.
     # "search" and "scripted" keep per-world state that a checkpoint does not hold: a run resumed inside
     # its first prior_rollouts transitions restarts them from where each world is (those episodes differ).

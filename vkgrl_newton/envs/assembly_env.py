@@ -79,7 +79,7 @@ from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from
 from ..runtime import torch_device
 from ..sim.physics import ActionBuffers, ControllerBuffers, ForceBuffers, PhysicsStepper
 from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene
-from ..tasks import ACTION_DIMS, FAMILIES, get_task, observation_dim  # noqa: F401  (observation_dim: a name of this module too)
+from ..tasks import ACTION_DIMS, FAMILIES, TARGET_OBS_NOISE, get_task, observation_dim  # noqa: F401  (observation_dim: a name of this module too)
 
 __all__ = ["EnvConfig", "AssemblyEnv", "FAMILIES", "ACTION_DIMS", "TASK_GEOMETRY"]
 
@@ -105,7 +105,6 @@ TORQUE_LIMIT = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 FORCE_OBS_NOISE = 1.0  # N, Forge
 CONTACT_PENALTY_THRESHOLD = 7.5  # N, eq. 5.19
 SUCCESS_REWARD = 4.0
-TARGET_OBS_NOISE = 0.001  # m, per axis, per episode (eq. 5.23 / Factory)
 # Physics steps of gripper closing at reset. Factory uses 30 (0.25 s); here the pads (Menagerie's
 # geometry, self-centring) then keep centring a peg placed off-centre by the in-hand noise for up to
 # another second: measured, the part moved up to 2.3 mm in the grasp during the first 15 control
@@ -146,6 +145,9 @@ class TaskGeometry:
 # q = 3.11 mm); the drive target 10 mm further in squeezes with ke 2000 N/m * 10 mm = 20 N.
 # Fingers open to Factory's held diameter / 2 * 1.25 (`factory_env.py`, `_full_reset`).
 _PAD = 0.000883
+# Apart from tasks.py's TaskSpec (the thesis's per-task tables, plain data importing nothing of the package): these
+# are the env's grasp and success facts in its own frames, derived from the authored parts (assets_usd.dimensions)
+# and this gripper's measured pads and drives, read through the env (env.geometry); its keys: the tasks it simulates.
 TASK_GEOMETRY = {
     # the fingertips grip the peg's top 17.608 mm (Factory: peg length - fingerpad length, 0.032392);
     # Factory's success: seated within 0.04 of the fixed part's height (success_threshold, factory_tasks_cfg.py)
@@ -353,7 +355,7 @@ class AssemblyEnv(VecEnv):
     contacts = property(lambda self: self.physics.contacts)
     control = property(lambda self: self.physics.control)
     jacobian = property(lambda self: self.physics.jacobian)
-    # opt-in time split of eager physics (vkgrl_newton/envs/throughput.py): stage name -> seconds.
+    # opt-in time split of eager physics (vkgrl_newton/tools/throughput.py): stage name -> seconds.
     # None (the default) costs nothing; a dict runs the steps eagerly, synchronized around each stage.
     profile = property(lambda self: self.physics.profile,
                        lambda self, p: setattr(self.physics, "profile", p))
@@ -676,7 +678,7 @@ class AssemblyEnv(VecEnv):
 
     def attach_vision(self, source) -> None:
         """Fill the vision slot from `source(env) -> (E, vision_latent_dim)` (e.g. the task camera
-        through a frozen encoder, `vision.latent.CameraLatent`). It is called lazily, when an
+        through a frozen encoder, `envs.camera_latent.CameraLatent`). It is called lazily, when an
         observation is read after the state changed, so the latent always shows the state the
         rest of the observation shows: after each step, after resets, and in the final
         observations of ended episodes. None detaches."""
@@ -745,7 +747,7 @@ class AssemblyEnv(VecEnv):
         exp(r) q_tcp adds r_z to the Euler yaw), the world-frame rotation vector log(q q_tcp^-1) /
         rot_scale (6D), -2 r_z / rot_scale_z - 1 (unidirectional yaw); clipped to [-1, 1], then
         a = (wanted - (1 - ema) applied) / ema. For a demonstrator commanding poses through the SAC
-        action space (agents.evaluation.ScriptedDeltaPolicy); privileged (reads the smoothing state)."""
+        action space (envs.evaluation.ScriptedDeltaPolicy); privileged (reads the smoothing state)."""
         pos = self._check_actions(tcp_pos_w, 3, "tcp_pos_w")
         quat = self._check_actions(tcp_quat_w, 4, "tcp_quat_w")
         quat = quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-9)

@@ -12,7 +12,7 @@ converts at its edge. Its contract, gymnasium 1.x's:
 - observations (num_envs, obs_dim) float32: the thesis's proprioceptive vector (normalized time,
   TCP position relative to the observed target frame, TCP quaternion; Forge adds the smoothed
   contact force; the vision variants the frozen VAE's latent). Actions (num_envs, D) in [-1, 1]:
-  D = 4 (xyz + yaw) or 6. A KGRL id acts in the KMP prior's null space (`agents.kgrl.
+  D = 4 (xyz + yaw) or 6. A KGRL id acts in the KMP prior's null space (`envs.kgrl_action.
   KGRLActionPath`; a = 0 follows the prior), the others by Factory's delta-pose mapping.
 - autoreset: `AutoresetMode.SAME_STEP`. A world whose episode ended is reset inside the same
   `step`; the returned observation is the new episode's first, the ended episode's last is in
@@ -95,8 +95,8 @@ class AssemblyVectorEnv(VectorEnv):
                                         device=device, seed=seed, vision_latent_dim=latent_dim,
                                         sim=SimConfig(geometry=geometry)))
             if vision:
-                from ..vision.latent import CameraLatent
-                from ..vision.pipeline import VISION_PRESETS, load_or_make_encoder
+                from ..envs.camera_latent import CameraLatent
+                from ..prepare.vision import VISION_PRESETS, load_or_make_encoder
 
                 preset = VISION_PRESETS["thesis" if str(device).startswith("cuda") else "quick"]
                 encoder, _ = load_or_make_encoder(task, preset, cache_dir, device, vae_path=vae, log=_quiet,
@@ -110,8 +110,9 @@ class AssemblyVectorEnv(VectorEnv):
         self.env = env
         self.action_path = None
         if kgrl:
-            from ..agents.kgrl import KGRLActionPath, load_or_make_prior
+            from ..envs.kgrl_action import KGRLActionPath
 
+            from ..prepare.prior import load_or_make_prior
             tables, _ = load_or_make_prior(task, action_dim, cache_dir, demos=demos, device=device, geometry=geometry,
                                            log=_quiet)
             self.action_path = KGRLActionPath(tables, env)
@@ -126,11 +127,11 @@ class AssemblyVectorEnv(VectorEnv):
 
     def rsl_rl_env(self):
         """The same worlds as an rsl-rl `VecEnv` for rsl-rl's runners: the env itself, or for a KGRL id
-        the env acting through its prior's null space (agents.ppo.KGRLVecEnv). Both share this env's
+        the env acting through its prior's null space (envs.rsl_rl.KGRLVecEnv). Both share this env's
         state: step one or the other, not both."""
         if self.action_path is None:
             return self.env
-        from ..agents.ppo import KGRLVecEnv
+        from .rsl_rl import KGRLVecEnv
 
         return KGRLVecEnv(self.env, self.action_path)
 

@@ -4,7 +4,7 @@ Defaults for the KMP parameters (thesis Table 5.4 gives dt, h and the weights, n
 
     KMP_LAMBDA = 1.0, KMP_BETA = 4.0, KMP_L = 20.0   (kernel exp(-l (s_i - s_j)^2))
 
-They were chosen with `python -m vkgrl_newton.kmp.param_study` on 10 synthetic
+They were chosen with `python -m vkgrl_newton.tools.kmp_param_study` on 10 synthetic
 demonstrations per task (Table 5.2 start spread, 1 mm target noise), 6D, lam in {0.1, 1, 6},
 beta in {1, 2, 3, 4, 6, 10, 30}, l in {2, 20, 200, 1000}. Per task at (1, 4, 20):
 

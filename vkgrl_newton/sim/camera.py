@@ -60,6 +60,10 @@ class CameraSpec:
         return math.degrees(2.0 * math.atan(0.5 * self.horizontal_aperture / self.focal_length))
 
 
+# Apart from tasks.py (plain data at the bottom, importing nothing of the package): a CameraSpec is this module's
+# type, beside the renderer that reads it (newton, warp, torch), and the mounts are placed against this project's
+# hand hull (below); a vision preset picks one of CAMERA_SETS, Table 5.6's or the contact cameras.
+#
 # Thesis Table 5.6. PegInsert's "roll -20" is applied as a 20 degree tilt of the optical axis
 # back toward the gripper axis (about the hand y axis): rendered literally, about the optical x
 # axis, a camera 8 cm beside the hand looks past the fingers at the bare table (checked), and the

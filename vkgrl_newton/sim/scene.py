@@ -111,7 +111,7 @@ class SimConfig:
 
 
 # (nconmax, njmax) per world when SimConfig leaves them None: 1.5x the peaks measured over one scripted
-# and one random episode of 4 worlds (`python -m vkgrl_newton.envs.contact_peaks`, docs/benchmarks.md),
+# and one random episode of 4 worlds (`python -m vkgrl_newton.tools.contact_peaks`, docs/benchmarks.md),
 # rounded up to a multiple of 32. Contacts share one buffer across worlds (peak total / worlds);
 # constraint rows are per world. MuJoCo-Warp's cost grows with the allocation, not just the use, and
 # an overflow is counted and warned (AssemblyEnv.contact_overflows_total), never silent.
@@ -413,7 +413,7 @@ def make_solver(scene: Scene):
 
 
 def make_solver_for(model: newton.Model, task: str, config: SimConfig, num_worlds: int):
-    """`make_solver` for any model of `task` (e.g. the parts alone, sim.parts)."""
+    """`make_solver` for any model of `task` (e.g. the parts alone, tools/parts.py)."""
     nconmax, njmax = contact_limits(task, config)
     pipeline = newton.CollisionPipeline(model, rigid_contact_max=nconmax * num_worlds, broad_phase="explicit")
     if config.solver == "mujoco":

@@ -204,7 +204,7 @@ def near_hole_probe(latent_train, geometry_train, latent_val, geometry_val, pixe
     its standard error over a bootstrap of whole held-out episodes (`episode_bootstrap_se`). With
     fewer than `min_images` near-hole frames in either split the RMSEs are None and "skipped"
     says why."""
-    from ..envs.assembly_env import TARGET_OBS_NOISE
+    from ..tasks import TARGET_OBS_NOISE
 
     zt, zv = _as_2d(latent_train, "latent_train"), _as_2d(latent_val, "latent_val")
     gt, gv = np.asarray(geometry_train, np.float64), np.asarray(geometry_val, np.float64)

@@ -18,7 +18,7 @@ thesis's setting): the weight rises linearly from 0 to `kl_weight` over the firs
 Measured on the quick preset's PegInsert set (64 x 64, 4 096 images): with the thesis's
 GroupNorm network and weight 1 the posterior collapsed (KL 0.002 nats, the decoder drew the mean
 image, linear-probe R^2 ~ 0); a warm-up only delayed it. What the quick preset uses instead, and
-why, is in vision/pipeline.py.
+why, is in prepare/vision.py.
 
 Validation, after every epoch, on the set's VALIDATION split (whole episodes the training never
 saw, `vision.dataset`): clean images, no augmentation, and z = mu instead of a sample, so the

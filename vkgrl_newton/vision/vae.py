@@ -13,7 +13,7 @@ in that order as the thesis writes it, then flatten and two linear heads for mu 
 p=1) -> LeakyReLU -> GroupNorm(8)] -> ConvTranspose2d(k=4, s=2, p=1) to 3 channels -> sigmoid.
 The thesis gives neither the channel widths nor the Leaky ReLU slope: (32, 64, 128, 256, 256) and
 0.2 are our choice. `VAEConfig.group_norm=False` drops the GroupNorm layers (the CPU `quick`
-preset's setting, vision/pipeline.py says why).
+preset's setting, prepare/vision.py says why).
 
 Loss (eq. 4.48, with sigma_o^2 of eq. 4.42 absorbed into the unit weight of the squared error):
     L = 1/N sum_t [ ||o_t - f(z_t)||^2 + 1/2 sum_j (mu_tj^2 + sigma_tj^2 - log sigma_tj^2 - 1) ]
@@ -82,7 +82,7 @@ class VAEConfig:
     # GroupNorm after every hidden layer as 5.6.1 (True), or none (False): measured on the quick
     # preset's 64 px PegInsert images, the normalized net stays on the mean-image plateau (encoder
     # means nearly equal for every image) for thousands of steps, the unnormalized one leaves it
-    # within ~150; the CPU preset uses False (vision.pipeline)
+    # within ~150; the CPU preset uses False (prepare.vision)
     group_norm: bool = True
 
     def __post_init__(self) -> None:

@@ -3,7 +3,8 @@ import torch, numpy as np
 from vkgrl_newton.runtime import configure_warp
 configure_warp()
 from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig
-from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior
+from vkgrl_newton.envs.kgrl_action import KGRLActionPath
+from vkgrl_newton.prepare.prior import load_or_make_prior
 from vkgrl_newton.results.paired import seed_evaluation
 torch.set_num_threads(1)
 env = AssemblyEnv(EnvConfig(task="PegInsert", family="factory", action_dim=4, num_envs=16, device="cpu", seed=0))

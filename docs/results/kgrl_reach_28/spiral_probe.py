@@ -15,7 +15,8 @@ import torch
 from vkgrl_newton.runtime import configure_warp
 
 configure_warp()
-from vkgrl_newton.agents.kgrl import KGRLActionPath, load_or_make_prior  # noqa: E402
+from vkgrl_newton.envs.kgrl_action import KGRLActionPath  # noqa: E402
+from vkgrl_newton.prepare.prior import load_or_make_prior
 from vkgrl_newton.envs.assembly_env import AssemblyEnv, EnvConfig  # noqa: E402
 from vkgrl_newton.kmp.tables import with_reach_floor  # noqa: E402
 from vkgrl_newton.results.paired import paired_gain, seed_evaluation  # noqa: E402

@@ -1,6 +1,6 @@
-"""Kernel microbenchmarks: `python -m vkgrl_newton.kernels.bench [--json PATH]`.
+"""Kernel microbenchmarks: `python -m vkgrl_newton.tools.bench_kernels [--json PATH]`.
 
-Times every Warp kernel in this package against its torch implementation of the same
+Times every Warp kernel in vkgrl_newton.kernels against its torch implementation of the same
 computation, for batch sizes (number of environments) 1, 128 and 4096 on every available
 device (cpu, and cuda when present). Each timing is the median of --repeats runs after
 --warmup runs, with the device synchronized around each run; inputs are allocated once,
@@ -42,8 +42,8 @@ from .._io import atomic_write_text, strict_json
 from ..cli_types import device_name
 from ..runtime import device_error, parse_cli
 from ..signals import run_cli
-from .kmp_horizon import kmp_horizon_pose, mat66f, vec6f
-from .osc import osc_torques, osc_torques_torch
+from ..kernels.kmp_horizon import kmp_horizon_pose, mat66f, vec6f
+from ..kernels.osc import osc_torques, osc_torques_torch
 
 
 @dataclass(frozen=True)
@@ -302,7 +302,7 @@ CASES = [
 def setup_contact_forces(batch: int, device: str):
     """Contact forces: reduce + EMA/statistics update. Per world 60 shapes (the first 6 in the gripper group)
     and 200 contact rows, of which 150 are live; random within-world shape pairs and forces."""
-    from .contact_forces import contact_force_reduce, contact_force_update, contact_forces_torch
+    from ..kernels.contact_forces import contact_force_reduce, contact_force_update, contact_forces_torch
 
     tdev = _torch_device(device)
     g = torch.Generator().manual_seed(0)
@@ -446,4 +446,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(run_cli(main, "bench", "nothing was written"))
+    raise SystemExit(run_cli(main, "bench_kernels", "nothing was written"))

@@ -1,6 +1,6 @@
 """Peak contact and constraint-row counts per task: what SimConfig.nconmax / njmax must hold.
 
-    python -m vkgrl_newton.envs.contact_peaks --tasks PegInsert GearMesh NutThread --num-worlds 8 --json out.json
+    python -m vkgrl_newton.tools.contact_peaks --tasks PegInsert GearMesh NutThread --num-worlds 8 --json out.json
 
 Runs one episode per policy (the scripted demonstrator through `step_pose`; uniform random
 actions through `step`; "press": delta actions driving the part down into the fixed part at 70 %
@@ -27,8 +27,8 @@ from ..cli_types import positive_int
 from ..runtime import parse_cli
 from ..sim.scene import TASK_CONTACT_LIMITS, SimConfig
 from ..tasks import TASKS
-from .assembly_env import AssemblyEnv, EnvConfig
-from .scripted import ScriptedInserter
+from ..envs.assembly_env import AssemblyEnv, EnvConfig
+from ..envs.scripted import ScriptedInserter
 
 
 POLICIES = ("scripted", "random", "press")

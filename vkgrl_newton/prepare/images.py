@@ -37,8 +37,8 @@ from tqdm import tqdm
 import numpy as np
 
 from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_rotate
-from .dataset import IMAGESET_FORMAT, ImageSetWriter
-from .probe import part_pixel_features
+from ..vision.dataset import IMAGESET_FORMAT, ImageSetWriter
+from ..vision.probe import part_pixel_features
 
 __all__ = ["CollectConfig", "collect_images", "default_image_dir", "relative_target_state", "collect_camera_spec",
            "part_shape_ids", "FIXED_PIXEL_PARTS"]

@@ -1,4 +1,4 @@
-"""The numbers behind the KMP defaults (lam, beta, l): `python -m vkgrl_newton.kmp.param_study`.
+"""The numbers behind the KMP defaults (lam, beta, l): `python -m vkgrl_newton.tools.kmp_param_study`.
 
 For each (lam, beta, l) it builds the per-step tables of a task from synthetic
 demonstrations (Table 5.2 spread, 1 mm target noise) and reports, over the control grid:
@@ -22,9 +22,9 @@ import torch
 
 from ..runtime import parse_cli
 from ..tasks import get_task
-from .demos import synthetic_demos
-from .gmr import fit_gmm, gmr
-from .tables import build_kmp_tables, control_grid, reference_window
+from ..kmp.demos import synthetic_demos
+from ..kmp.gmr import fit_gmm, gmr
+from ..kmp.tables import build_kmp_tables, control_grid, reference_window
 
 
 def study_row(gmm, spec, lam, beta, l, action_dim=6) -> dict:

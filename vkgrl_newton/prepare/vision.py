@@ -2,7 +2,7 @@
 
     encoder, info = load_or_make_encoder("PegInsert", VISION_PRESETS["quick"], "runs/cache", "cpu")
 
-1. the image set (`vision.collect`): cache/<task>/images_v<demonstrator version>_r<R>_n<N>_seed<S>_<key>/
+1. the image set (`prepare.images`): cache/<task>/images_v<demonstrator version>_r<R>_n<N>_seed<S>_<key>/
    (<key>: a hash of every collection setting and the camera, `collect.collection_key`), collected into a temporary sibling directory and renamed when complete, so an interrupted
    collection leaves no half set under the final name (a stale temporary directory of ours is
    removed and redone);
@@ -48,11 +48,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..cache import entry_lock
-from .collect import CollectConfig, collect_images, collection_key, default_image_dir
-from .train import train_vae
-from .vae import FrozenEncoder, VAEConfig, load_vae
+from ..vision.train import train_vae
+from ..vision.vae import FrozenEncoder, VAEConfig, load_vae
+from .images import CollectConfig, collect_images, collection_key, default_image_dir
 
-__all__ = ["VisionPreset", "VISION_PRESETS", "load_or_make_encoder", "default_vae_dir"]
+__all__ = ["VisionPreset", "VISION_PRESETS", "load_or_make_encoder", "default_vae_dir", "untrained_preset_latent"]
 
 
 @dataclass(frozen=True)
@@ -100,7 +100,7 @@ def default_vae_dir(cache_dir, task: str, preset: VisionPreset, num_envs: int = 
     """cache/<task>/vae_v<D>_r<R>_n<N>_e<E>[_b<B>][_kl<w>][_nonorm]_seed<S>_<image key>: the VAE settings
     that differ from the thesis's are in the name, then the image set's key, so a VAE trained with
     other settings or on other images is never taken for it."""
-    from ..envs.scripted import DEMONSTRATOR_VERSION  # the image set's key (collect.default_image_dir)
+    from ..envs.scripted import DEMONSTRATOR_VERSION  # the image set's key (images.default_image_dir)
 
     name = f"vae_v{DEMONSTRATOR_VERSION}_r{preset.resolution}_n{preset.num_images}_e{preset.vae_epochs}"
     if preset.vae_batch_size != 128:
@@ -147,3 +147,17 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
     encoder = FrozenEncoder(vae, camera=payload["meta"].get("camera"))
     return encoder, {"vae": str(vae_path), "resolution": encoder.config.resolution,
                      "latent_dim": encoder.latent_dim}
+
+
+def untrained_preset_latent(env, preset: str):
+    """A CameraLatent of a vision preset's camera with an untrained encoder of the thesis's shape:
+    what the benchmarks time (untrained weights cost the same as trained ones)."""
+    import dataclasses
+
+    from ..envs.camera_latent import CameraLatent
+    from ..vision.vae import DenoisingVAE, FrozenEncoder, VAEConfig
+    from .images import collect_camera_spec
+
+    p = VISION_PRESETS[preset]
+    camera = dataclasses.asdict(collect_camera_spec(p.collect_config(env.cfg.task)))
+    return CameraLatent(env, FrozenEncoder(DenoisingVAE(VAEConfig(resolution=p.resolution)), camera=camera))

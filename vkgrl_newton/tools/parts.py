@@ -1,8 +1,8 @@
 """The task parts alone, without the robot: the checks that the contact geometry does its job.
 
-    python -m vkgrl_newton.sim.parts --task NutThread     # advance per turn under push + torque
-    python -m vkgrl_newton.sim.parts --task GearMesh      # blocked when misaligned, slides when aligned
-    python -m vkgrl_newton.sim.parts --task NutThread --geometry mesh   # the same with the part meshes
+    python -m vkgrl_newton.tools.parts --task NutThread     # advance per turn under push + torque
+    python -m vkgrl_newton.tools.parts --task GearMesh      # blocked when misaligned, slides when aligned
+    python -m vkgrl_newton.tools.parts --task NutThread --geometry mesh   # the same with the part meshes
 
 The task stage is loaded on its own (fixed asset static at its authored pose, held asset a free
 body) with the contact settings of the full scene (`scene.apply_contact_settings`) and stepped
@@ -36,7 +36,7 @@ from ..assets_usd.dimensions import (FIXED_ASSET_NOMINAL_POS, GEAR_MEDIUM_X, GEA
                                      THREAD_PITCH)
 from ..rotations import euler_xyz_from_quat
 from ..runtime import parse_cli
-from .scene import GEOMETRIES, SimConfig, add_part_meshes, apply_contact_settings, make_solver_for, stage_root
+from ..sim.scene import GEOMETRIES, SimConfig, add_part_meshes, apply_contact_settings, make_solver_for, stage_root
 
 __all__ = ["PartsSim", "build_parts", "DriveResult", "run_drive"]
 

@@ -1,7 +1,7 @@
 """Vision cost per control step: render every world's task camera, then encode with the frozen VAE.
 
-    python -m vkgrl_newton.vision.bench --num-worlds 16 128 --resolution 64 256 --calls 3 --json runs/bench/vision.json
-    python -m vkgrl_newton.vision.bench --num-worlds 16 64 --preset quick thesis --task NutThread
+    python -m vkgrl_newton.tools.bench_vision --num-worlds 16 128 --resolution 64 256 --calls 3 --json runs/bench/vision.json
+    python -m vkgrl_newton.tools.bench_vision --num-worlds 16 64 --preset quick thesis --task NutThread
 
 For each world count and camera: a task env (Factory, 4D; PegInsert unless --task) after its
 reset, the task camera (Newton's SensorCamera) and a VAE encoder of the thesis's shape (5 conv
@@ -28,8 +28,9 @@ import warp as wp
 
 from .._io import atomic_write_text
 from ..runtime import parse_cli
-from .latent import CameraLatent, untrained_preset_latent
-from .vae import DenoisingVAE, FrozenEncoder, VAEConfig
+from ..envs.camera_latent import CameraLatent
+from ..prepare.vision import untrained_preset_latent
+from ..vision.vae import DenoisingVAE, FrozenEncoder, VAEConfig
 
 
 def measure(num_worlds: int, resolution: int | None, calls: int, device: str | None = None, preset: str | None = None,
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
     ap.add_argument("--num-worlds", type=int, nargs="+", default=[16, 128])
     ap.add_argument("--resolution", type=int, nargs="+", default=None,
                     help="Table 5.6's camera at these resolutions (default 64 256 without --preset)")
-    ap.add_argument("--preset", nargs="+", default=None, help="vision presets' cameras (vision.pipeline.VISION_PRESETS)")
+    ap.add_argument("--preset", nargs="+", default=None, help="vision presets' cameras (prepare.vision.VISION_PRESETS)")
     ap.add_argument("--task", default="PegInsert")
     ap.add_argument("--calls", type=int, default=3)
     ap.add_argument("--device", default=None)
@@ -91,7 +92,7 @@ def main(argv=None) -> int:
     if min(args.num_worlds) < 1 or args.calls < 1:
         ap.error("--num-worlds and --calls must be >= 1")
     from ..tasks import TASKS
-    from .pipeline import VISION_PRESETS
+    from ..prepare.vision import VISION_PRESETS
 
     if args.task not in TASKS:
         ap.error(f"--task {args.task!r}; allowed: {', '.join(TASKS)}")

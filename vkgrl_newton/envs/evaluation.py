@@ -53,7 +53,7 @@ class Policy(ABC):
 
 class ScriptedPolicy(Policy):
     def __init__(self, seed: int = 0):
-        from ..envs.scripted import ScriptedInserter
+        from .scripted import ScriptedInserter
 
         self.inserter = ScriptedInserter(seed=seed)
 
@@ -186,7 +186,7 @@ class KMPSearchPolicy(Policy):
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None) -> "KMPSearchPolicy":
         """The search in an action path over `tables` with the params' reach floors (train/evaluate.py)."""
-        from .kgrl import KGRLActionPath
+        from .kgrl_action import KGRLActionPath
 
         p = params or SearchParams()
         return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,

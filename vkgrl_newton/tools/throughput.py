@@ -1,9 +1,9 @@
 """Env throughput: env steps per second at several world counts, and where the time goes.
 
-    python -m vkgrl_newton.envs.throughput --num-worlds 1 16 64 --steps 10 --json runs/bench/env.json
-    python -m vkgrl_newton.envs.throughput --task NutThread --policy scripted --warmup 75 --num-worlds 16
-    python -m vkgrl_newton.envs.throughput --graph both --num-worlds 16 64 --json runs/bench/graph.json
-    python -m vkgrl_newton.envs.throughput --vision quick --num-worlds 16 64     # with the task camera + encoder
+    python -m vkgrl_newton.tools.throughput --num-worlds 1 16 64 --steps 10 --json runs/bench/env.json
+    python -m vkgrl_newton.tools.throughput --task NutThread --policy scripted --warmup 75 --num-worlds 16
+    python -m vkgrl_newton.tools.throughput --graph both --num-worlds 16 64 --json runs/bench/graph.json
+    python -m vkgrl_newton.tools.throughput --vision quick --num-worlds 16 64     # with the task camera + encoder
 
 Each env step is 8 physics steps (1/120 s) x `substeps` solver substeps, with the OSC kernel every
 substep, plus the contact-force reduction and the Python/torch work of the step (action mapping,
@@ -20,7 +20,7 @@ world count in both modes, in one process, eager first). Timed runs per world co
    collision (Newton's pipeline), solver (MuJoCo-Warp), contact forces (our reduction kernels);
    "python" is the profiled total minus those stages. (A graph has no stages to time.)
 With `--vision PRESET` the observation gains the vision latent of that preset's camera and an
-encoder of the thesis's shape (untrained weights cost the same; vision.latent.CameraLatent), so
+encoder of the thesis's shape (untrained weights cost the same; envs.camera_latent.CameraLatent), so
 every env step also renders and encodes, and the eager split has a "vision" stage.
 Resets are excluded (the env is reset before timing). The JSON has `results`, one entry per
 (task, num_worlds, mode) with `task`, `num_worlds`, `mode` ("eager" | "graph"), `env_steps_per_s`,
@@ -47,7 +47,7 @@ from ..signals import run_cli
 from ..tasks import TASKS, get_task
 from ..sim.physics import PROFILE_STAGES
 from ..sim.scene import SimConfig
-from .assembly_env import AssemblyEnv, EnvConfig
+from ..envs.assembly_env import AssemblyEnv, EnvConfig
 
 STAGES = PROFILE_STAGES + ("vision",)  # vision: the camera render and the encoder (with --vision)
 
@@ -62,11 +62,11 @@ def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int 
     env = AssemblyEnv(EnvConfig(task=task, num_envs=num_worlds, action_dim=4, family="factory", device=device,
                                 graph=mode == "graph", sim=sim or SimConfig(), vision_latent_dim=16 if vision else 0))
     if vision is not None:
-        from ..vision.latent import untrained_preset_latent
+        from ..prepare.vision import untrained_preset_latent
 
         env.attach_vision(untrained_preset_latent(env, vision))
     if policy == "scripted":
-        from .scripted import ScriptedInserter
+        from ..envs.scripted import ScriptedInserter
 
         inserter = ScriptedInserter(seed=0)
         inserter.reset(env)
@@ -140,7 +140,7 @@ def main(argv=None) -> int:
                  "(neither is to be timed)")
     if args.json is not None and args.json.exists():
         ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
-    from ..vision.pipeline import VISION_PRESETS
+    from ..prepare.vision import VISION_PRESETS
 
     if args.vision is not None and args.vision not in VISION_PRESETS:
         ap.error(f"--vision {args.vision!r}; allowed: {', '.join(VISION_PRESETS)}")

@@ -1,7 +1,7 @@
 """Render the task camera (thesis Table 5.6) of a few worlds into one PNG.
 
-    python -m vkgrl_newton.envs.preview --task PegInsert --out peg_camera.png
-    python -m vkgrl_newton.envs.preview --task GearMesh --camera contact --out gear_contact.png
+    python -m vkgrl_newton.tools.preview --task PegInsert --out peg_camera.png
+    python -m vkgrl_newton.tools.preview --task GearMesh --camera contact --out gear_contact.png
 
 The worlds are reset (Table 5.2 randomization) and the scripted demonstrator runs `--steps`
 control steps (default 18: the peg is above the hole, the approach under way), then each world's
@@ -25,8 +25,8 @@ from ..runtime import parse_cli
 from ..sim.camera import CAMERA_SETS, TaskCamera
 from ..sim.scene import GEOMETRIES, SimConfig, geometry_error
 from ..tasks import TASKS
-from .assembly_env import AssemblyEnv, EnvConfig
-from .scripted import ScriptedInserter
+from ..envs.assembly_env import AssemblyEnv, EnvConfig
+from ..envs.scripted import ScriptedInserter
 
 
 def render_preview(task: str, num_worlds: int, steps: int, seed: int = 0, device: str | None = None,

@@ -13,9 +13,9 @@ import dataclasses
 
 import torch
 
-from .vae import FrozenEncoder
+from ..vision.vae import FrozenEncoder
 
-__all__ = ["CameraLatent", "untrained_preset_latent"]
+__all__ = ["CameraLatent"]
 
 
 class CameraLatent:
@@ -39,18 +39,4 @@ class CameraLatent:
     def __call__(self, env) -> torch.Tensor:
         images = self.camera.render_torch(env.state_0, *env.hand_pose())  # uint8 (E, R, R, 3) view
         z = torch.cat([self.encoder(images[i:i + self.batch]) for i in range(0, images.shape[0], self.batch)])
-        return z  # on env.tdev, where the encoder is; timings: python -m vkgrl_newton.vision.bench
-
-
-def untrained_preset_latent(env, preset: str) -> CameraLatent:
-    """A CameraLatent of a vision preset's camera with an untrained encoder of the thesis's shape:
-    what the benchmarks time (untrained weights cost the same as trained ones)."""
-    import dataclasses
-
-    from .collect import collect_camera_spec
-    from .pipeline import VISION_PRESETS
-    from .vae import DenoisingVAE, VAEConfig
-
-    p = VISION_PRESETS[preset]
-    camera = dataclasses.asdict(collect_camera_spec(p.collect_config(env.cfg.task)))
-    return CameraLatent(env, FrozenEncoder(DenoisingVAE(VAEConfig(resolution=p.resolution)), camera=camera))
+        return z  # on env.tdev, where the encoder is; timings: python -m vkgrl_newton.tools.bench_vision

@@ -1,6 +1,6 @@
 """SAC update throughput: gradient steps per second of our agent vs stable-baselines3's SAC.
 
-    python -m vkgrl_newton.agents.bench_sac --device cpu --steps 50 --json runs/bench/sac.json
+    python -m vkgrl_newton.tools.bench_sac --device cpu --steps 50 --json runs/bench/sac.json
 
 Both learn on the thesis network ([512, 256, 128] ELU, 2 critics, AdamW weight decay 1e-4) and
 batch (256), from a replay buffer pre-filled with random transitions, on the same device and in

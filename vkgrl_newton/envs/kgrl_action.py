@@ -1,0 +1,75 @@
+"""The KGRL action path (thesis eqs. 4.36, 5.20, 5.25, 5.32): policy actions -> TCP pose commands.
+
+A policy action a in [-1, 1]^D becomes the scaled null-space input zeta = w * a (w_pos on x, y, z;
+w_rot on the rotations, thesis Table 5.4; in 4D zeta = (x, y, z, 0, 0, yaw)), the per-step KMP
+tables give eta = m[n] + B[n] zeta at the env's control step n, and eta becomes an absolute TCP
+pose command relative to the observed target frame and q_ref: the Warp kernel
+`kernels/kmp_horizon.py` does the last two steps for all worlds at once. The env's `step_pose`
+then holds that command for the control step. zeta = 0 follows the prior alone.
+
+It lives beside the env it drives; the prior's tables come from `prepare.prior.load_or_make_prior`.
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from ..kernels.kmp_horizon import kmp_horizon_pose, vec6f
+from ..kmp.tables import KMPTables, with_reach_floor
+
+__all__ = ["KGRLActionPath"]
+
+
+class KGRLActionPath:
+    """Maps policy actions to absolute TCP pose commands through the KMP tables, batched over worlds."""
+
+    def __init__(self, tables: KMPTables, env, reach_floor: float = 0.0, reach_floor_z: float = 0.0):
+        spec = env.task
+        if tables.action_dim != env.num_actions:
+            raise ValueError(f"KMP tables are {tables.action_dim}D, the env acts in {env.num_actions}D")
+        if tables.n_steps != env.max_episode_length:
+            raise ValueError(f"KMP tables cover {tables.n_steps} steps, an episode has {env.max_episode_length}: "
+                             f"tables of another task or KMP dt")
+        self.env = env
+        self.action_dim = env.num_actions
+        E, tdev = env.num_envs, env.tdev
+        # zeta = scale * a, with a embedded in the 6D (x, y, z, rx, ry, rz) layout of the tables
+        self.axes = [0, 1, 2, 5] if self.action_dim == 4 else [0, 1, 2, 3, 4, 5]
+        scale = [spec.w_pos] * 3 + [spec.w_rot] * (self.action_dim - 3)
+        # reach_floor (m, x and y) and reach_floor_z (m, z); 0: the thesis. kmp.tables.with_reach_floor, a
+        # deviation: late in PegInsert the null space moves z ~2 mm while the prior presses a blocked peg
+        # ~20 mm into the hole's face, so a policy cannot lighten the press that keeps it from sliding
+        self.reach_floor, self.reach_floor_z = float(reach_floor), float(reach_floor_z)
+        w6 = [spec.w_pos] * 3 + [spec.w_rot] * 3
+        self.tables = with_reach_floor(with_reach_floor(tables, self.reach_floor, w6), self.reach_floor_z, w6, axes=(2,))
+        tables = self.tables
+        self.scale = torch.tensor(scale, dtype=torch.float32, device=tdev)
+        self.zeta = torch.zeros(E, 6, dtype=torch.float32, device=tdev)
+        self.eta = torch.zeros(E, 6, dtype=torch.float32, device=tdev)
+        self.tcp_pos_cmd_w = torch.zeros(E, 3, dtype=torch.float32, device=tdev)
+        self.tcp_quat_cmd_w = torch.zeros(E, 4, dtype=torch.float32, device=tdev)
+        self._mean_wp, self._gain_wp = tables.to_warp(env.device)
+        self._wp = {  # warp views of the torch buffers (same memory), made once
+            "zeta": wp.from_torch(self.zeta, dtype=vec6f),
+            "eta": wp.from_torch(self.eta, dtype=vec6f),
+            "pos": wp.from_torch(self.tcp_pos_cmd_w, dtype=wp.vec3),
+            "quat": wp.from_torch(self.tcp_quat_cmd_w, dtype=wp.quat),
+            "step_index": wp.from_torch(env.step_index, dtype=wp.int32),
+            "target_pos_w": wp.from_torch(env.target_frame_pos_w, dtype=wp.vec3),
+            "ref_quat_w": wp.from_torch(env.ref_quat_w, dtype=wp.quat),
+        }
+
+    def pose(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Commanded TCP pose (pos (E, 3), quat (E, 4) xyzw, world frame) for actions (E, D) in [-1, 1]."""
+        if actions.shape != (self.env.num_envs, self.action_dim):
+            raise ValueError(f"actions must have shape ({self.env.num_envs}, {self.action_dim}), got {tuple(actions.shape)}")
+        self.zeta[:, self.axes] = actions.clamp(-1.0, 1.0).to(self.zeta) * self.scale
+        w = self._wp
+        kmp_horizon_pose(w["step_index"], w["zeta"], self._mean_wp, self._gain_wp, w["target_pos_w"], w["ref_quat_w"],
+                         w["eta"], w["pos"], w["quat"])
+        return self.tcp_pos_cmd_w, self.tcp_quat_cmd_w
+
+    def step(self, actions: torch.Tensor):
+        """One env control step on the KGRL path; returns what `env.step` returns."""
+        return self.env.step_pose(*self.pose(actions))

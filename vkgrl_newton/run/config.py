@@ -1,0 +1,300 @@
+"""A run's configuration: the command line's options, `RunConfig` (frozen, every default resolved)
+and `resolve`, which turns the options (or a run directory's checkpoint, on `--resume`) into one.
+
+Every refusal of an option is a `ConfigError` raised here, with the text the command line prints
+(train/run.py turns it into one line and exit 2). What a method allows comes from its row of the
+method table (run/methods.py). Light imports only at module level: a command line answers --help
+and every argument error before torch, Warp or Newton load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..agents.sac_config import SAC_PRESETS, SACConfig, make_sac_config
+from ..cli_types import (add_cache_dir_option, add_device_option, add_eager_physics_flag, add_eval_seed_option,
+                         add_kmp_reference_option, add_verbose_flag, positive_int)
+from ..results.curves import CURVES_FILE
+from ..results.paired import EVAL_SEED
+from ..tasks import ACTION_DIMS, FAMILIES, GEOMETRIES, TASKS, VISION_LATENT_DIM, observation_dim
+from .methods import METHODS, RUN_METHODS, Method, names
+from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, KGRL_RECIPES, NO_RECIPE, RUN_DEFAULTS
+
+__all__ = ["RunConfig", "ConfigError", "build_parser", "parse_sac_overrides", "kgrl_recipe", "RUN_FILES",
+           "search_without_z_reach", "unavailable", "explicit_args"]
+
+# what a run writes in its directory; one holding any of them holds a run (other files, such as a
+# sweep's train.log, may sit beside them)
+RUN_FILES = ("config.json", "checkpoints", "tb", "metrics.json", CURVES_FILE)
+
+
+class ConfigError(ValueError):
+    """An option (or a checkpoint's configuration) that cannot run: the one line the command line prints."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything a run is: identity (what a resume must match), plan (what it was asked to do) and
+    how it runs. Built by `resolve` from a command line or a checkpoint; nothing changes it after."""
+    task: str = "PegInsert"
+    method: str = "kgrl"
+    env: str = "factory"
+    action_dim: int = 4
+    seed: int = 0
+    num_envs: int = 16
+    preset: str = "quick"
+    time_obs: bool = True
+    geometry: str = "primitives"
+    label: str | None = None
+    kgrl_recipe: str | None = None  # the takes_recipe methods' (run.presets.KGRL_RECIPES), else None
+    sac: SACConfig | None = None  # the SAC learner's configuration (None for PPO)
+    ppo: dict | None = None  # rsl-rl's runner configuration (ppo methods)
+    # the prior (kmp methods): your demonstrations or the scripted ones, the KMP's reference and
+    # parameters (None: kmp.prior's defaults; a resumed run's own), the action path's reach floors (mm)
+    demos: Path | None = None
+    num_demos: int = 16
+    kmp_reference: str = "gmr"
+    kmp_params: dict | None = None
+    reach_floor_mm: float = 0.0
+    reach_floor_z_mm: float = 0.0
+    vae: Path | None = None  # vision methods: a given vae.pt (None: the cache's for the task and preset)
+    # the plan
+    total_steps: int = 30_000
+    checkpoint_every: int = 4_800
+    eval_episodes: int = 8
+    eval_seed: int = EVAL_SEED
+    # how it runs
+    device: str = "cpu"
+    run_dir: Path = Path("runs/train/run")
+    resume: bool = False
+    cache_dir: Path = Path("runs/cache")
+    progress: bool = True
+    overlap: bool | None = None  # None: on for a CPU device
+    eager_physics: bool = False
+    verbose: bool = False
+    extra: dict = field(default_factory=dict, compare=False, repr=False)  # (unused; room for a tool's notes)
+
+    @property
+    def method_row(self) -> Method:
+        return METHODS[self.method]
+
+    @property
+    def latent_dim(self) -> int:
+        return VISION_LATENT_DIM if self.method_row.vision else 0
+
+    @property
+    def obs_dim(self) -> int:
+        """The policy input's width: observation_dim(), the same function the env uses, less time if ablated."""
+        return observation_dim(self.env, self.latent_dim) - (0 if self.time_obs else 1)
+
+    @property
+    def ckpt_path(self) -> Path:
+        return self.run_dir / "checkpoints" / "last.pt"
+
+    @property
+    def floors(self) -> dict:
+        return {"reach_floor_mm": self.reach_floor_mm, "reach_floor_z_mm": self.reach_floor_z_mm}
+
+    def plan(self) -> dict:
+        """What a run was asked to do beyond its identity; a resumed run keeps it unless given again."""
+        return {"total_steps": self.total_steps, "checkpoint_every": self.checkpoint_every,
+                "eval_episodes": self.eval_episodes, "eval_seed": self.eval_seed}
+
+    def vae_path(self) -> Path:
+        """The run's vae.pt: the given one, or the cached one of the task and preset (made when missing)."""
+        from ..prepare.vision import VISION_PRESETS, default_vae_dir
+
+        if self.vae is not None:
+            return Path(self.vae)
+        return default_vae_dir(self.cache_dir, self.task, VISION_PRESETS[self.preset]) / "vae.pt"
+
+    def meta(self) -> dict:
+        """What identifies a run; a resumed run must match it field by field. The learner's configuration:
+        "sac" (the SACConfig) or, for the ppo methods, "ppo" (the rsl-rl runner configuration)."""
+        meta = {"task": self.task, "method": self.method, "env": self.env, "action_dim": self.action_dim,
+                "seed": self.seed, "num_envs": self.num_envs, "preset": self.preset, "time_obs": self.time_obs,
+                "obs_dim": self.obs_dim}
+        if self.method_row.uses_ppo:
+            meta["ppo"] = self.ppo
+        else:
+            meta["sac"] = dataclasses.asdict(self.sac)
+        if self.geometry != "primitives":  # absent in the default case, so older checkpoints still resume
+            meta["geometry"] = self.geometry
+        if self.label:  # absent unless given, so older runs still resume
+            meta["label"] = self.label
+        if self.kgrl_recipe not in (None, "base"):  # absent for base, as in runs before recipes
+            meta["kgrl_recipe"] = self.kgrl_recipe
+        if self.method_row.vision:
+            meta["vision"] = {"vae": str(self.vae_path()), "latent_dim": VISION_LATENT_DIM}
+        return meta
+
+
+def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
+    """train/run.py's options (`doc`: its docstring, for --help)."""
+    ap = argparse.ArgumentParser(description=(doc or "Train a policy").split("\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=doc)
+    ap.add_argument("--task", default="PegInsert", choices=sorted(TASKS))
+    ap.add_argument("--method", default="kgrl", choices=RUN_METHODS,
+                    help="; ".join(f"{m.name}: {m.summary}" for m in METHODS.values()))
+    ap.add_argument("--env", default="factory", choices=FAMILIES)
+    ap.add_argument("--action-dim", type=int, default=4, choices=ACTION_DIMS)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--num-envs", type=positive_int, default=None, help="worlds (default: the preset's)")
+    ap.add_argument("--total-steps", type=positive_int, default=None,
+                    help="env transitions summed over worlds (default: the preset's)")
+    ap.add_argument("--preset", default=None, choices=sorted(SAC_PRESETS),
+                    help="SAC hyperparameters (default: thesis on CUDA, quick on CPU)")
+    ap.add_argument("--sac", metavar="FIELD=VALUE", action="append", default=[],
+                    help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256 "
+                         "(over the kgrl methods' --kgrl-recipe)")
+    ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
+                    help=f"{names(takes_recipe=True)}: the defaults under --sac and the reach floors: reach_keep_prior "
+                         "(the quick preset's: beats the prior on paired episodes, docs/results.md) or base (the "
+                         "thesis preset's: the thesis's null space; the quick default until issue 28). Default: "
+                         "the preset's, or on --resume the run's")
+    ap.add_argument("--ppo", metavar="KEY=VALUE", action="append", default=[],
+                    help="ppo methods: override an rsl-rl PPO setting by its dotted path, e.g. --ppo "
+                         "num_steps_per_env=32 --ppo algorithm.learning_rate=3e-4 (default: Isaac Lab Factory's, "
+                         "agents/ppo_config.py; kgrl_ppo starts at actor.distribution_cfg.init_std=0.1)")
+    add_device_option(ap)
+    ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES,
+                    help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes with SDFs on CUDA; "
+                         "the scripted demonstrations are recorded on it too)")
+    ap.add_argument("--run-dir", type=Path, default=None,
+                    help="default runs/train/<task>_<method>_<env>_<D>d_seed<S>_<date-time>")
+    ap.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its last checkpoint")
+    ap.add_argument("--no-time-obs", action="store_true",
+                    help="drop normalized time from the policy input (thesis A.1; the KMP still uses it)")
+    ap.add_argument("--checkpoint-every", type=positive_int, default=None, help="transitions between checkpoints")
+    ap.add_argument("--eval-episodes", type=int, default=None,
+                    help="final deterministic evaluation: episodes per world, all worlds at once (0: none; default: "
+                         f"enough for >= {EVAL_MIN_EPISODES} episodes, a success rate's standard error <= 0.045); "
+                         "KGRL methods evaluate their prior (a = 0) on the same episodes")
+    add_eval_seed_option(ap, EVAL_SEED)
+    ap.add_argument("--demos", type=Path, default=None, help="KGRL: your own demonstrations (npz)")
+    ap.add_argument("--num-demos", type=int, default=16, help="KGRL: scripted demonstrations to record")
+    add_kmp_reference_option(ap, None)
+    ap.add_argument("--kgrl-reach-floor", type=float, default=None, metavar="MM",
+                    help="KGRL: a saturated action moves the x and y command at least MM mm at every step (default: "
+                         "the recipe's, reach_keep_prior 3, base 0: the thesis's null space, ~1 mm late in PegInsert; "
+                         "a deviation, see kmp.tables.with_reach_floor and docs/log/benchmarks.md)")
+    ap.add_argument("--kgrl-reach-floor-z", type=float, default=None, metavar="MM",
+                    help="KGRL: likewise for z (default: the recipe's, reach_keep_prior 25, base 0: the thesis's, ~2 mm "
+                         "late in PegInsert, while the prior presses a blocked peg ~20 mm into the face; a "
+                         "deviation, see docs/log/benchmarks.md)")
+    ap.add_argument("--vae", type=Path, default=None,
+                    help="vision methods: your own trained vae.pt (train/train_vae.py) instead of the cached one")
+    add_cache_dir_option(ap)
+    ap.add_argument("--label", default=None,
+                    help="a name for the run's variant (e.g. the options it tries), recorded in config.json and "
+                         "metrics.json; train/report.py shows runs of another label as another row")
+    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
+                    help="step the env in a worker thread while the SAC update of the previous transitions runs "
+                         "(a one-update policy lag; default: on for a CPU device, off on CUDA, not yet measured there)")
+    add_eager_physics_flag(ap)
+    add_verbose_flag(ap)
+    return ap
+
+
+def parse_sac_overrides(items: list[str]) -> dict:
+    """FIELD=VALUE strings -> typed SACConfig overrides; ValueError names a bad field or value."""
+    fields = {f.name: f for f in dataclasses.fields(SAC_PRESETS["quick"])}
+    out: dict = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or name not in fields:
+            raise ValueError(f"--sac {item!r}: expected FIELD=VALUE with FIELD one of {sorted(fields)}")
+        current = getattr(SAC_PRESETS["quick"], name)
+        try:
+            if isinstance(current, tuple):
+                out[name] = tuple(int(v) for v in text.split(","))
+            elif isinstance(current, bool):
+                if text.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(text)
+                out[name] = text.lower() in ("true", "1")
+            elif current is None or isinstance(current, float):
+                out[name] = None if text.lower() == "none" else float(text)
+            elif isinstance(current, int):
+                out[name] = int(text)
+            else:
+                out[name] = text
+        except ValueError:
+            raise ValueError(f"--sac {item!r}: {text!r} is not a valid {type(current).__name__} for {name}") from None
+    return out
+
+
+def explicit_args(parser: argparse.ArgumentParser, argv) -> set[str]:
+    """The options given on the command line (not defaults)."""
+    for action in parser._actions:
+        action.default = None
+    ns = parser.parse_args(argv)
+    return {k for k, v in vars(ns).items() if v is not None and v is not False and v != []}  # (0 is given)
+
+
+def kgrl_recipe(ns, preset: str) -> dict:
+    """The run's KGRL_RECIPES entry: --kgrl-recipe, else the preset's (the base recipe's zero floors and no
+    SAC fields for the methods without one)."""
+    if not METHODS[ns.method].takes_recipe:
+        return NO_RECIPE
+    return KGRL_RECIPES[ns.kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]]
+
+
+def sac_config_for(ns, preset: str) -> SACConfig:
+    """The preset's SACConfig under the recipe's fields and --sac's (ValueError names a bad one)."""
+    return make_sac_config(preset, **{**kgrl_recipe(ns, preset)["sac"], **ns.sac_overrides})
+
+
+def search_without_z_reach(ns, sac_config, preset: str) -> str | None:
+    """The refusal of prior_rollouts_policy=search where the run's z reach floor (given, else the recipe's
+    of `preset`) is 0; None otherwise. A resumed run keeps the floors its checkpoint records."""
+    reach_z = ns.kgrl_reach_floor_z if ns.kgrl_reach_floor_z is not None else kgrl_recipe(ns, preset)["reach_floor_z_mm"]
+    if getattr(sac_config, "prior_rollouts_policy", "prior") == "search" and METHODS[ns.method].uses_kmp \
+            and not ns.resume and not reach_z:
+        return ("--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs "
+                "z reach, give --kgrl-reach-floor-z MM (e.g. 25; the thesis's null space reaches ~2 mm there)")
+    return None
+
+
+def reach_floor_flags(ns) -> tuple:
+    """(prior-record key, flag, value given or None) of the two reach floors."""
+    return (("reach_floor_mm", "--kgrl-reach-floor", ns.kgrl_reach_floor),
+            ("reach_floor_z_mm", "--kgrl-reach-floor-z", ns.kgrl_reach_floor_z))
+
+
+def unavailable(ns) -> str | None:
+    """Why this combination cannot run yet, or None."""
+    from ..envs.assembly_env import TASK_GEOMETRY
+
+    if ns.task not in TASK_GEOMETRY:
+        return f"task {ns.task!r} is not simulated yet; available tasks: {sorted(TASK_GEOMETRY)}"
+    return None
+
+
+def default_run_dir(ns) -> Path:
+    return Path("runs/train") / (f"{ns.task}_{ns.method}_{ns.env}_{ns.action_dim}d_"
+                                 f"seed{ns.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
+
+
+def check_scalars(ns) -> None:
+    """The option values that are wrong whatever the method (ConfigError)."""
+    if ns.eval_episodes is not None and ns.eval_episodes < 0:
+        raise ConfigError(f"--eval-episodes {ns.eval_episodes}: must be >= 0 (episodes per world; 0: no final "
+                          "evaluation)")
+    if ns.label is not None and not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", ns.label):
+        raise ConfigError(f"--label {ns.label!r}: 1-40 characters of letters, digits, '_', '.', '-'")
+    if not 0 <= ns.eval_seed < 2**63:
+        raise ConfigError(f"--eval-seed {ns.eval_seed}: must be in [0, 2**63)")
+    if ns.num_demos < 2:
+        raise ConfigError(f"--num-demos {ns.num_demos}: must be >= 2")
+    if not 0 <= ns.seed < 2**32:
+        raise ConfigError(f"--seed {ns.seed}: must be in [0, 2**32)")
+    for flag, value in (("--kgrl-reach-floor", ns.kgrl_reach_floor), ("--kgrl-reach-floor-z", ns.kgrl_reach_floor_z)):
+        if value is not None and METHODS[ns.method].uses_kmp and not (math.isfinite(value) and 0 <= value <= 50):
+            raise ConfigError(f"{flag} must be a number of mm in [0, 50], got {value}")

@@ -1,0 +1,329 @@
+"""From a command line (and, on --resume, the run's checkpoint) to a `RunConfig`, in the order that
+keeps a refusal cheap: the run directory and the checkpoint, the options against the method's row
+(before torch or Warp load), then the device and the preset's defaults, then the given files.
+
+`resolve(parser, argv)` returns a `Resolved` (the config, and the checkpoint's payload on a resume)
+or a `Done` (nothing to run: the message and the exit code); a refusal is a `ConfigError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..agents.ppo_config import METHOD_PPO_DEFAULTS, parse_ppo_overrides, ppo_train_cfg
+from ..agents.sac_config import SACConfig
+from ..cache import check_run_files
+from ..tasks import geometry_error
+from .config import (RUN_FILES, ConfigError, RunConfig, check_scalars, default_run_dir, explicit_args, kgrl_recipe,
+                     parse_sac_overrides, reach_floor_flags, sac_config_for, search_without_z_reach, unavailable)
+from .methods import METHODS, names
+from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, PPO_RUNNER_ONLY, RUN_DEFAULTS
+
+__all__ = ["resolve", "Resolved", "Done", "without_file_records"]
+
+_NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first checkpoint (no checkpoints/last.pt): "
+                  "nothing to resume; choose another directory, or delete this one to start it again")
+# what a resumed run takes from its checkpoint unless given again (then it must agree)
+_RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label")
+
+
+@dataclass(frozen=True)
+class Resolved:
+    config: RunConfig
+    payload: dict | None  # the checkpoint a resumed run continues from
+
+
+@dataclass(frozen=True)
+class Done:
+    message: str  # printed on stderr as it is
+    code: int
+
+
+def resolve(parser, argv) -> Resolved | Done:
+    ns = parser.parse_args(argv)
+    ns.sac_config, ns.ppo_cfg, payload = None, None, None
+    _check_run_dir(ns)
+    if ns.resume:
+        payload = _from_checkpoint(ns, explicit_args(_fresh_parser(parser), argv))
+        if isinstance(payload, Done):
+            return payload
+    _check_options(ns)
+    provisional = ns.preset or ("thesis" if (ns.device or "").startswith("cuda") else "quick")
+    checked = _check_sac_options(ns, provisional)
+    if (reason := unavailable(ns)) is not None:  # (imports the env's module: the heavy part starts here)
+        return Done(f"train/run.py: {reason}", 2)
+    _check_given_demos(ns)
+    _apply_device_and_defaults(ns, provisional, checked)
+    config = _to_config(ns, payload)
+    _check_given_vae(config)
+    if payload is not None:
+        _check_against_checkpoint(ns, config, payload)
+    return Resolved(config, payload)
+
+
+def _fresh_parser(parser):
+    """A parser like `parser` whose defaults explicit_args may clear (build_parser is called again)."""
+    from .config import build_parser
+
+    return build_parser(parser.epilog)
+
+
+def _check_run_dir(ns) -> None:
+    d = ns.run_dir
+    if d is not None and d.is_dir() and any((d / n).exists() for n in RUN_FILES):
+        if not (d / "checkpoints" / "last.pt").exists():  # with or without --resume: one message
+            raise ConfigError(_NO_CHECKPOINT.format(run_dir=d))
+        if not ns.resume:
+            raise ConfigError(f"--run-dir {d} already holds a run; pass --resume to continue it or choose another "
+                              "directory")
+    if ns.resume and d is None:
+        raise ConfigError("--resume needs --run-dir (the run to continue)")
+
+
+def _from_checkpoint(ns, given: set[str]) -> dict | Done:
+    """The run's identity and plan from its checkpoint, into `ns` where not given again (a damaged
+    checkpoint is refused here); Done when the run is finished and nothing more is asked."""
+    from ..agents.checkpoint import load_checkpoint
+
+    try:
+        payload = load_checkpoint(ns.run_dir / "checkpoints" / "last.pt", map_location="cpu")
+    except (FileNotFoundError, ValueError) as e:
+        raise ConfigError(f"--resume: {e}") from None
+    meta = payload["meta"]
+    for name in _RUN_IDENTITY:
+        if name not in given:
+            setattr(ns, name, meta.get(name))
+    if "no_time_obs" not in given:
+        ns.no_time_obs = not meta["time_obs"]
+    if "kgrl_recipe" not in given and ns.method in METHODS and METHODS[ns.method].takes_recipe:
+        ns.kgrl_recipe = meta.get("kgrl_recipe", "base")  # absent: a run before recipes
+    if "geometry" not in given:
+        ns.geometry = meta.get("geometry", "primitives")
+    if "vae" not in given and "vision" in meta:
+        ns.vae = Path(meta["vision"]["vae"])
+    if "demos" not in given and "prior" in meta:
+        ns.demos = Path(meta["prior"]["demos"])
+    try:  # a run continues from exactly what it learned from
+        check_run_files(meta, demos=ns.demos, vae=ns.vae)
+    except (FileNotFoundError, ValueError) as e:
+        raise ConfigError(f"--resume: {e}") from None
+    if (done := _finished(ns, payload, given)) is not None:
+        return done
+    for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every, eval_episodes, eval_seed
+        if name not in given:
+            setattr(ns, name, value)
+    if ns.method in METHODS and METHODS[ns.method].uses_ppo:
+        if not ns.ppo:
+            ns.ppo_cfg = meta.get("ppo")
+    elif not ns.sac and "sac" in meta:  # (a PPO run resumed as a SAC method: the meta check names it)
+        try:
+            ns.sac_config = SACConfig(**meta["sac"])
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"--resume: the checkpoint's SAC configuration is not valid today ({e}); give the "
+                              "fields again with --sac FIELD=VALUE") from None
+    return payload
+
+
+def _finished(ns, payload: dict, given: set[str]) -> Done | None:
+    """A finished run (its metrics.json is of the checkpoint's transitions): nothing to continue and
+    nothing rewritten (its metrics.json is what report.py reads), unless --total-steps asks for more."""
+    done_at = int(payload["counters"].get("transitions", 0))
+    metrics_file = ns.run_dir / "metrics.json"
+    try:
+        finished = metrics_file.exists() and int(
+            json.loads(metrics_file.read_text()).get("training", {}).get("transitions", -1)) == done_at
+    except (json.JSONDecodeError, ValueError, TypeError, AttributeError):
+        finished = False
+    if finished and not ("total_steps" in given and ns.total_steps > done_at):
+        return Done(f"train/run.py: {ns.run_dir} is a finished run ({done_at} transitions, {metrics_file}); nothing "
+                    f"to resume. Train it further with --total-steps N (> {done_at}); evaluate it again with "
+                    f"train/evaluate.py --checkpoint {ns.run_dir / 'checkpoints' / 'last.pt'} --json FILE", 0)
+    return None
+
+
+def _check_options(ns) -> None:
+    """Each option against the method's row of the table (ConfigError), before anything heavy."""
+    m = METHODS[ns.method]
+    if geometry_error(ns.task, ns.geometry):
+        raise ConfigError(f"--{geometry_error(ns.task, ns.geometry)}")
+    if ns.geometry == "mesh" and m.vision:
+        raise ConfigError(f"--geometry mesh is for the sac and kgrl methods: the image sets and VAEs of {ns.method} "
+                          "are made on the primitives")
+    check_scalars(ns)
+    if ns.demos is not None and not m.uses_kmp and not ns.resume:
+        raise ConfigError(f"--demos is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
+    if m.uses_ppo:  # PPO's settings are --ppo's; the SAC-loop options do not apply
+        # (--no-overlap is what PPO does anyway: sweep.py passes it to every one-core trial)
+        for flag, given_here in (("--sac", ns.sac), ("--overlap", ns.overlap is True),
+                                 ("--no-time-obs", ns.no_time_obs)):
+            if given_here:
+                raise ConfigError(f"{flag} is for the SAC methods ({names(uses_sac=True)}), not {ns.method!r}")
+        try:
+            ns.ppo_overrides = {**METHOD_PPO_DEFAULTS.get(ns.method, {}), **parse_ppo_overrides(ns.ppo)}
+            if runner_only := sorted(set(ns.ppo_overrides) & set(PPO_RUNNER_ONLY)):
+                key = runner_only[0]
+                raise ValueError(f"{key} is for rsl-rl's OnPolicyRunner, not run.py's loop ({PPO_RUNNER_ONLY[key]})")
+            ppo_train_cfg(ns.task, ns.env, 1, **ns.ppo_overrides)  # checked now; sized below
+        except ValueError as e:
+            raise ConfigError(f"--ppo: {e}") from None
+    elif ns.ppo:
+        raise ConfigError(f"--ppo is for the ppo methods ({names(uses_ppo=True)}), not {ns.method!r}")
+    try:
+        ns.sac_overrides = parse_sac_overrides(ns.sac)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if ns.kgrl_recipe is not None and not m.takes_recipe:
+        raise ConfigError(f"--kgrl-recipe is for the kgrl methods on SAC ({names(takes_recipe=True)}), "
+                          f"not {ns.method!r}")
+    if ns.kmp_reference is not None and not m.uses_kmp:
+        raise ConfigError(f"--kmp-reference is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
+    for _, flag, value in reach_floor_flags(ns):
+        if value is not None and not m.uses_kmp:
+            raise ConfigError(f"{flag} is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
+    if ns.vae is not None and not m.vision:
+        raise ConfigError(f"--vae is for the vision methods ({names(vision=True)}), not {ns.method!r}")
+    if ns.run_dir is not None and ns.run_dir.exists() and not ns.run_dir.is_dir():
+        raise ConfigError(f"--run-dir {ns.run_dir} is a file; give a directory (new, or a run's with --resume)")
+
+
+def _check_sac_options(ns, provisional: str):
+    """The SAC config checked before torch and Warp are imported, with the preset the device implies
+    when it is given (a CUDA default is known only later; then it is checked again)."""
+    m = METHODS[ns.method]
+    checked = ns.sac_config
+    if checked is None and not m.uses_ppo:
+        try:
+            checked = sac_config_for(ns, provisional)
+        except ValueError as e:
+            raise ConfigError(f"--sac: {e}") from None
+    prior_only = [f for f in ("prior_anchor", "prior_ratio", "prior_rollouts") if getattr(checked, f, None)]
+    rollouts = getattr(checked, "prior_rollouts_policy", "prior")
+    if rollouts == "scripted":  # the SAC methods' demonstrations: the first rollouts and their buffer are theirs
+        if m.uses_kmp:
+            raise ConfigError(f"--sac prior_rollouts_policy=scripted is for the SAC methods "
+                              f"({names(uses_sac=True, uses_kmp=False)}), not {ns.method!r}, whose first rollouts "
+                              "are the prior's (prior) or the search's (search)")
+        prior_only = [f for f in prior_only if f == "prior_anchor"]
+    elif rollouts != "prior":
+        prior_only.append("prior_rollouts_policy")
+    if prior_only and not m.uses_kmp:
+        hint = "" if prior_only[0] == "prior_anchor" else \
+            "; the SAC methods learn from the demonstrator's rollouts with --sac prior_rollouts_policy=scripted"
+        raise ConfigError(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl "
+                          f"methods ({names(takes_recipe=True)}), not {ns.method!r}{hint}")
+    if why := search_without_z_reach(ns, checked, provisional):
+        raise ConfigError(why)
+    return checked
+
+
+def _check_given_demos(ns) -> None:
+    if ns.demos is not None and not ns.resume:  # a missing, damaged or foreign file stops here
+        from ..kmp.demos import DemoSet
+
+        try:
+            demo_task = DemoSet.load(ns.demos).task
+        except (FileNotFoundError, ValueError) as e:
+            raise ConfigError(f"--demos: {e}") from None
+        if demo_task != ns.task:
+            raise ConfigError(f"--demos {ns.demos}: demonstrations of {demo_task}, not --task {ns.task}")
+
+
+def _apply_device_and_defaults(ns, provisional: str, checked) -> None:
+    """Warp configured, the device checked, the preset's defaults filled in (torch and Warp load here)."""
+    from ..runtime import configure_warp, default_device, device_error
+
+    configure_warp(ns.verbose)
+    ns.device = ns.device or default_device()
+    if (why := device_error(ns.device)) is not None:
+        raise ConfigError(why)
+    ns.preset = ns.preset or ("thesis" if ns.device.startswith("cuda") else "quick")
+    m = METHODS[ns.method]
+    if m.takes_recipe:
+        ns.kgrl_recipe = ns.kgrl_recipe or DEFAULT_KGRL_RECIPE[ns.preset]
+    if ns.sac_config is None and not m.uses_ppo:
+        try:
+            ns.sac_config = checked if ns.preset == provisional else sac_config_for(ns, ns.preset)
+        except ValueError as e:
+            raise ConfigError(f"--sac: {e}") from None
+        if why := search_without_z_reach(ns, ns.sac_config, ns.preset):  # (the preset may have changed)
+            raise ConfigError(why)
+    defaults = RUN_DEFAULTS[ns.preset]
+    ns.num_envs = ns.num_envs or defaults["num_envs"]
+    ns.total_steps = ns.total_steps or defaults["total_steps"]
+    ns.checkpoint_every = ns.checkpoint_every or defaults["checkpoint_every"]
+    if ns.eval_episodes is None:
+        ns.eval_episodes = -(-EVAL_MIN_EPISODES // ns.num_envs)
+    if m.uses_ppo and ns.ppo_cfg is None:  # minibatches of ~512 transitions for these worlds
+        ns.ppo_cfg = ppo_train_cfg(ns.task, ns.env, ns.num_envs, **ns.ppo_overrides)
+
+
+def _to_config(ns, payload: dict | None) -> RunConfig:
+    """The frozen configuration; the prior's parameters and floors from the checkpoint on a resume."""
+    run_dir = ns.run_dir or default_run_dir(ns)
+    if not ns.resume and any((run_dir / name).exists() for name in RUN_FILES):  # a default name taken meanwhile
+        raise ConfigError(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another "
+                          "directory")
+    recipe = kgrl_recipe(ns, ns.preset)
+    floors = {key: float(given if given is not None else recipe[key]) for key, _, given in reach_floor_flags(ns)}
+    reference, kmp_params = ns.kmp_reference or "gmr", None
+    if payload is not None and "prior" in payload["meta"]:  # the KMP parameters it was fitted with
+        prior = payload["meta"]["prior"]
+        kmp_params = {k: prior[k] for k in ("lam", "beta", "l")}
+        reference = prior.get("reference", "gmr")
+        for key, _, _ in reach_floor_flags(ns):  # (a different one given is refused against the checkpoint)
+            floors[key] = prior.get(key, 0.0)
+    return RunConfig(
+        task=ns.task, method=ns.method, env=ns.env, action_dim=ns.action_dim, seed=ns.seed, num_envs=ns.num_envs,
+        preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
+        kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,
+        sac=ns.sac_config, ppo=ns.ppo_cfg, demos=ns.demos, num_demos=ns.num_demos, kmp_reference=reference,
+        kmp_params=kmp_params, vae=ns.vae, total_steps=ns.total_steps,
+        checkpoint_every=ns.checkpoint_every, eval_episodes=ns.eval_episodes, eval_seed=ns.eval_seed,
+        device=ns.device, run_dir=run_dir, resume=bool(ns.resume), cache_dir=ns.cache_dir,
+        progress=not ns.no_progress, overlap=ns.overlap, eager_physics=bool(ns.eager_physics),
+        verbose=bool(ns.verbose), **floors)
+
+
+def _check_given_vae(config: RunConfig) -> None:
+    if config.vae is not None:
+        from ..tasks import VISION_LATENT_DIM
+        from ..vision.vae import load_vae
+
+        try:  # missing, the wrong task, damaged or not a VAE at all: stop before anything is built
+            load_vae(config.vae, expect={"task": config.task, "latent_dim": VISION_LATENT_DIM})
+        except (FileNotFoundError, ValueError) as e:
+            raise ConfigError(f"--vae: {e}") from None
+
+
+def without_file_records(meta: dict) -> dict:
+    """A run's meta less its file records (prior, VAE hash): compared by content, not as fields."""
+    meta = dict(meta)
+    meta.pop("prior", None)
+    if "vision" in meta:
+        meta["vision"] = {k: v for k, v in meta["vision"].items() if k != "vae_sha256"}
+    return meta
+
+
+def _check_against_checkpoint(ns, config: RunConfig, payload: dict) -> None:
+    """A foreign checkpoint stops here, before anything is built."""
+    from ..agents.checkpoint import check_meta
+
+    try:
+        saved = without_file_records(payload["meta"])  # checked above, by content
+        # a checkpoint from before a SACConfig field existed holds that field's default
+        if "sac" in saved:
+            saved["sac"] = dataclasses.asdict(SACConfig(**saved["sac"]))
+        now = config.meta()
+        for m in (saved, now):  # the default geometry is not stored; name it in a mismatch
+            m.setdefault("geometry", "primitives")
+        check_meta(saved, now, config.ckpt_path)
+    except ValueError as e:
+        raise ConfigError(f"--resume: {e}") from None
+    if config.method_row.uses_kmp and "prior" in payload["meta"]:  # the null space it learned in, before any build
+        for key, flag, given in reach_floor_flags(ns):
+            was = payload["meta"]["prior"].get(key, 0.0)
+            if given is not None and given != was:
+                raise ConfigError(f"--resume: the run's {flag} was {was:g} mm, not {given:g}; resume without it")
