@@ -13,7 +13,7 @@ TORCH_SPEC ?= torch==2.13.0
 PY          = $(VENV)/bin/python
 STAMP       = $(VENV)/.installed
 
-.PHONY: run test bench clean-venv
+.PHONY: run test test-fast bench clean-venv
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -31,8 +31,16 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(PY) train/run.py --task PegInsert --method vision_kgrl
 
+# the layer rules (pyproject's [tool.importlinter]: a broken one fails here), then the whole suite
 test: $(STAMP)
+	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest -q tests
+
+# the inner loop for whoever changes the code: every package's fast tests (not the `slow` ones:
+# whole training runs, the gym ids, the kernel compiles of the other solvers), a few minutes on 2 cores
+test-fast: $(STAMP)
+	$(VENV)/bin/lint-imports --no-cache
+	$(PY) -m pytest -q -m "not slow" tests
 
 bench: $(STAMP)
 	$(PY) -m vkgrl_newton.tools.bench_kernels

@@ -38,7 +38,7 @@ def test_every_configuration_has_one_id_registered_and_in_the_readme():
     readme = (ROOT / "README.md").read_text()
     for name, kw in ids.items():
         spec = gym.spec(name)
-        assert spec.vector_entry_point == "vkgrl_newton.envs.vector:AssemblyVectorEnv" and spec.kwargs == kw
+        assert spec.vector_entry_point == "vkgrl_newton.run.gym:make_vec_env" and spec.kwargs == kw
         assert env_id(**kw) == name and re.fullmatch(r"VKGRL/[A-Za-z]+-(Factory|Forge)-[46]D(-Vision)?(-KGRL)?-v0",
                                                     name)
         assert f"`{name}`" in readme, f"README's table of ids lacks {name}"
@@ -66,9 +66,9 @@ def test_a_bad_id_is_gymnasiums_error_naming_it():
 
 
 def test_vector_contract_spaces_reset_seed_and_steps(peg4, demos, tmp_path):
-    from vkgrl_newton.envs.vector import AssemblyVectorEnv
+    from vkgrl_newton.run.gym import make_vec_env
 
-    envs = AssemblyVectorEnv("PegInsert", "factory", 4, kgrl=True, num_envs=2, device="cpu", cache_dir=tmp_path,
+    envs = make_vec_env("PegInsert", "factory", 4, method="kgrl", num_envs=2, device="cpu", cache_dir=tmp_path,
                              demos=demos, env=peg4)
     assert envs.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
     assert envs.single_observation_space.shape == (observation_dim("factory", 0),)
@@ -91,9 +91,9 @@ def test_vector_contract_spaces_reset_seed_and_steps(peg4, demos, tmp_path):
 def test_time_out_gives_the_pre_reset_observation_as_final_obs(peg4, demos, tmp_path):
     """The ended episode's last observation, captured independently just before the env resets the
     worlds, is info['final_obs']; the returned observation is the new episode's first (time 0)."""
-    from vkgrl_newton.envs.vector import AssemblyVectorEnv
+    from vkgrl_newton.run.gym import make_vec_env
 
-    envs = AssemblyVectorEnv("PegInsert", "factory", 4, kgrl=True, num_envs=2, device="cpu", cache_dir=tmp_path,
+    envs = make_vec_env("PegInsert", "factory", 4, method="kgrl", num_envs=2, device="cpu", cache_dir=tmp_path,
                              demos=demos, env=peg4, tensors="torch")
     captured = []
     original = peg4._reset_worlds
@@ -123,9 +123,9 @@ def test_time_out_gives_the_pre_reset_observation_as_final_obs(peg4, demos, tmp_
 def test_stable_baselines3_sac_trains_through_the_adapter_and_reloads(peg4, demos, tmp_path):
     sb3 = pytest.importorskip("stable_baselines3")
     from vkgrl_newton.envs.sb3 import SB3VecEnv
-    from vkgrl_newton.envs.vector import AssemblyVectorEnv
+    from vkgrl_newton.run.gym import make_vec_env
 
-    venv = AssemblyVectorEnv("PegInsert", "factory", 4, kgrl=True, num_envs=2, device="cpu", cache_dir=tmp_path,
+    venv = make_vec_env("PegInsert", "factory", 4, method="kgrl", num_envs=2, device="cpu", cache_dir=tmp_path,
                              demos=demos, env=peg4)
     env = SB3VecEnv(venv)
     env.seed(3)
@@ -224,11 +224,11 @@ def test_every_registered_id_makes_resets_and_steps(task, tmp_path_factory, wp_c
     ids = {name: kw for name, kw in env_ids().items() if kw["task"] == task}
     assert len(ids) == 16
     for name, kw in ids.items():
-        extra = {"demos": demos} if kw["kgrl"] else {}
-        extra |= {"vae": vae} if kw["vision"] else {}
+        extra = {"demos": demos} if "kgrl" in kw["method"] else {}
+        extra |= {"vae": vae} if "vision" in kw["method"] else {}
         envs = gym.make_vec(name, num_envs=1, device="cpu", cache_dir=root, **extra)
         obs, _ = envs.reset(seed=0)
-        dim = observation_dim(kw["family"], 16 if kw["vision"] else 0)
+        dim = observation_dim(kw["family"], 16 if "vision" in kw["method"] else 0)
         assert obs.shape == (1, dim) and obs.dtype == np.float32, name
         obs, reward, terminated, truncated, _ = envs.step(envs.action_space.sample())
         assert obs.shape == (1, dim) and np.isfinite(obs).all() and np.isfinite(reward).all(), name

@@ -343,8 +343,10 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     config = json.loads((run_dir / "config.json").read_text())
     sac = config["sac"]  # the recipe's SAC fields over the preset, TINY's over both
     assert config["kgrl_recipe"] == "reach_keep_prior"
-    assert {k: sac[k] for k in run_py.KGRL_RECIPES["reach_keep_prior"]["sac"]} == \
-        {**run_py.KGRL_RECIPES["reach_keep_prior"]["sac"], "prior_rollouts": 8} and sac["batch_size"] == 8
+    from vkgrl_newton.run.presets import KGRL_RECIPES
+
+    assert {k: sac[k] for k in KGRL_RECIPES["reach_keep_prior"]["sac"]} == \
+        {**KGRL_RECIPES["reach_keep_prior"]["sac"], "prior_rollouts": 8} and sac["batch_size"] == 8
     assert (sac["log_std_bound"], sac["prior_anchor"], sac["critic_layer_norm"], sac["prior_ratio"]) == \
         ("tanh", True, True, 0.5)  # the recipe, spelled out
     assert (sac["warmup"], sac["actor_init_std"], sac["log_std_max"]) == ("policy", 0.1, -1.2)
@@ -636,9 +638,11 @@ def test_run_unavailable_task_says_what_is_missing(run_py):
     from vkgrl_newton.tasks import TASKS
 
     assert sorted(TASK_GEOMETRY) == sorted(TASKS)
+    from vkgrl_newton.run.config import unavailable
+
     for task in TASKS:
-        assert run_py.unavailable(argparse.Namespace(task=task)) is None
-    message = run_py.unavailable(argparse.Namespace(task="BoltScrew"))
+        assert unavailable(argparse.Namespace(task=task)) is None
+    message = unavailable(argparse.Namespace(task="BoltScrew"))
     assert "not simulated" in message and "GearMesh" in message and "NutThread" in message
 
 
@@ -682,10 +686,12 @@ def test_run_geometry_is_part_of_a_mesh_runs_identity(run_py, tmp_path):
     from vkgrl_newton.prepare.prior import demos_path_for
     from vkgrl_newton.agents.sac import SAC_PRESETS
 
+    from vkgrl_newton.run.config import RunConfig
+
     base = dict(task="GearMesh", method="kgrl", env="factory", action_dim=4, seed=0, num_envs=2, preset="quick",
-                no_time_obs=False)
-    prim = run_py.run_meta(argparse.Namespace(**base, geometry="primitives", sac_config=SAC_PRESETS["quick"]), 8)
-    mesh = run_py.run_meta(argparse.Namespace(**base, geometry="mesh", sac_config=SAC_PRESETS["quick"]), 8)
+                time_obs=True, kgrl_recipe="base")
+    prim = RunConfig(**base, geometry="primitives", sac=SAC_PRESETS["quick"]).meta()
+    mesh = RunConfig(**base, geometry="mesh", sac=SAC_PRESETS["quick"]).meta()
     assert "geometry" not in prim and mesh["geometry"] == "mesh"
     assert {k: v for k, v in mesh.items() if k != "geometry"} == prim
     p = demos_path_for(tmp_path, "GearMesh", 16, 0)
@@ -704,9 +710,10 @@ def test_run_resume_with_another_geometry_is_refused(run_py, tmp_path, capsys):
     from vkgrl_newton.agents.checkpoint import CHECKPOINT_FORMAT, save_checkpoint
     from vkgrl_newton.agents.sac import SAC_PRESETS
 
-    args = argparse.Namespace(task="GearMesh", method="kgrl", env="factory", action_dim=4, seed=0, num_envs=2,
-                              preset="quick", no_time_obs=False, geometry="mesh", sac_config=SAC_PRESETS["quick"])
-    meta = run_py.run_meta(args, run_py.observation_dim("factory", 0))
+    from vkgrl_newton.run.config import RunConfig
+
+    meta = RunConfig(task="GearMesh", method="kgrl", env="factory", action_dim=4, seed=0, num_envs=2, preset="quick",
+                     time_obs=True, geometry="mesh", kgrl_recipe="base", sac=SAC_PRESETS["quick"]).meta()
     run_dir = tmp_path / "mesh_run"
     save_checkpoint(run_dir / "checkpoints" / "last.pt",
                     {"format": CHECKPOINT_FORMAT, "meta": meta, "counters": {}, "agent": {}, "rng": {}})
@@ -726,8 +733,10 @@ def test_the_search_is_refused_without_z_reach_under_the_final_presets_recipe(ru
     from vkgrl_newton.agents.sac_config import make_sac_config
 
     cfg = make_sac_config("quick", prior_rollouts=480, prior_rollouts_policy="search")
+    from vkgrl_newton.run.config import search_without_z_reach
+
     args = argparse.Namespace(method="kgrl", kgrl_recipe=None, kgrl_reach_floor_z=None, resume=False)
-    assert run_py._search_without_z_reach(args, cfg, "quick") is None  # reach_keep_prior: 25 mm
-    assert "needs z reach" in run_py._search_without_z_reach(args, cfg, "thesis")
+    assert search_without_z_reach(args, cfg, "quick") is None  # reach_keep_prior: 25 mm
+    assert "needs z reach" in search_without_z_reach(args, cfg, "thesis")
     args.kgrl_reach_floor_z = 10.0
-    assert run_py._search_without_z_reach(args, cfg, "thesis") is None
+    assert search_without_z_reach(args, cfg, "thesis") is None

@@ -66,10 +66,13 @@ from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E40
 from vkgrl_newton.results.plots import plot  # noqa: E402
 from vkgrl_newton.results.thesis import METRICS, THESIS_METHOD_NAMES, load_thesis_tables  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
+from vkgrl_newton.run.methods import RUN_METHODS  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS, FAMILIES, TASKS  # noqa: E402
 
 TASK_ORDER = tuple(TASKS)  # PegInsert, GearMesh, NutThread: the thesis's row order
-METHOD_ORDER = ("kgrl", "sac", "vision_kgrl", "vision_sac", "kgrl_ppo", "ppo")  # the thesis's row order, then the PPO baselines
+# the thesis's row order, then the other rows of the method table (run/methods.py) in its order
+METHOD_ORDER = ("kgrl", "sac", "vision_kgrl", "vision_sac") + tuple(m for m in RUN_METHODS
+                                                              if m not in ("kgrl", "sac", "vision_kgrl", "vision_sac"))
 COLUMNS = tuple((env, dim) for env in FAMILIES for dim in ACTION_DIMS)  # Factory 4D, 6D, Forge 4D, 6D
 TABLE_TITLES = {"mean_episode_reward": "Final mean reward", "success_rate": "Final success rate",
                 "mean_contact_force": "Final mean contact force magnitude (N)",

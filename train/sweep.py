@@ -54,7 +54,8 @@ sys.path.insert(0, str(ROOT))
 from vkgrl_newton._io import atomic_write_text  # noqa: E402
 from vkgrl_newton.cli_types import stderr_without  # noqa: E402
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
-from vkgrl_newton.tasks import ACTION_DIMS, METHODS, RUN_METHODS  # noqa: E402
+from vkgrl_newton.run.methods import RUN_METHODS, THESIS_METHODS as METHODS  # noqa: E402
+from vkgrl_newton.tasks import ACTION_DIMS  # noqa: E402
 from vkgrl_newton.tasks import FAMILIES as ENVS  # noqa: E402
 from vkgrl_newton.tasks import TASKS as TASK_SPECS  # noqa: E402
 from vkgrl_newton.sweep import (TrialProcessDied, log_tail, read_trial_state, run_trial, trial_status,  # noqa: E402

@@ -52,14 +52,10 @@ class TaskSpec:
 
 _deg = math.radians
 
-# The experiment's other axes (thesis ch. 5-6): environment families, action spaces, methods.
+# The experiment's other axes (thesis ch. 5-6): environment families and action spaces. The methods are
+# the run layer's table (run/methods.py: learner, action path and observation parts of each).
 FAMILIES = ("factory", "forge")
 ACTION_DIMS = (4, 6)
-METHODS = ("sac", "kgrl", "vision_sac", "vision_kgrl")
-# Baselines beyond the thesis, through train/run.py too: rsl-rl's PPO with Isaac Lab Factory's settings,
-# on the delta-pose path (ppo) and in the KMP prior's null space (kgrl_ppo; agents/ppo.py).
-PPO_METHODS = ("ppo", "kgrl_ppo")
-RUN_METHODS = METHODS + PPO_METHODS
 # The parts' collision geometry (sim/scene.py): the primitives everywhere; tooth / thread meshes
 # (SDFs on CUDA) for the tasks whose primitives are approximations.
 GEOMETRIES = ("primitives", "mesh")

@@ -1,7 +1,7 @@
 """The assembly env as a gymnasium `VectorEnv`, for learners other than this project's own.
 
     import gymnasium as gym
-    import vkgrl_newton  # registers the VKGRL/... ids (vkgrl_newton/registration.py)
+    import vkgrl_newton  # registers the VKGRL/... ids (vkgrl_newton/registration.py; built by run/gym.py)
 
     envs = gym.make_vec("VKGRL/PegInsert-Factory-4D-KGRL-v0", num_envs=16)
     obs, info = envs.reset(seed=0)
@@ -31,14 +31,12 @@ converts at its edge. Its contract, gymnasium 1.x's:
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from ..tasks import ACTION_DIMS, FAMILIES, TASKS, VISION_LATENT_DIM, geometry_error, observation_dim
+from ..tasks import ACTION_DIMS, FAMILIES, TASKS, geometry_error, observation_dim
 
 __all__ = ["AssemblyVectorEnv", "TENSORS", "check_vector_kwargs"]
 
@@ -60,68 +58,29 @@ def check_vector_kwargs(task: str, family: str, action_dim: int, num_envs: int, 
 class AssemblyVectorEnv(VectorEnv):
     """gymnasium VectorEnv over one batched `AssemblyEnv` (module docstring).
 
-    task, family ("factory" | "forge"), action_dim (4 | 6): the configuration; kgrl: act through
-    the task's KMP prior (recorded and fitted once, cached in `cache_dir`, as train/run.py);
-    vision: add the frozen VAE latent of the task camera (the vision preset's image set and VAE,
-    made once and cached, or `vae`: a train/train_vae.py vae.pt); demos: KGRL's demonstrations of your
-    own (an npz, kmp.demos.DemoSet; default: the scripted ones, recorded once); num_envs worlds on `device`
-    (None: CUDA when present); seed: the env's construction and first reset; tensors: "numpy" |
-    "torch"; env: an AssemblyEnv already built for this configuration (tests share one).
+    env: the AssemblyEnv (built by `vkgrl_newton.run.gym.make_vec_env`, the ids' entry point, through the
+    run library's builder, so that an id's env is the env train/run.py trains on); action_path: the KGRL
+    action path (envs.kgrl_action.KGRLActionPath) the actions go through, or None for Factory's
+    delta-pose mapping; tensors: "numpy" | "torch"; run_config: the run configuration it was built from
+    (kept for the user to read: `envs.run_config`).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
-    def __init__(self, task: str = "PegInsert", family: str = "factory", action_dim: int = 4, kgrl: bool = False,
-                 vision: bool = False, num_envs: int = 16, device: str | None = None, seed: int = 0,
-                 cache_dir: str | Path = "runs/cache", tensors: str = "numpy", geometry: str = "primitives",
-                 vae: str | Path | None = None, demos: str | Path | None = None, env=None):
-        check_vector_kwargs(task, family, action_dim, num_envs, tensors, geometry)  # before anything is built
-        if demos is not None and not kgrl:
-            raise ValueError("demos is for the KGRL ids (their prior's demonstrations)")
-        if vae is not None and not vision:
-            raise ValueError("vae is for the Vision ids (their frozen encoder)")
-        from ..runtime import configure_warp, default_device, device_error
-
-        configure_warp()
-        device = device or default_device()
-        if (why := device_error(device, "device")) is not None:
-            raise ValueError(why)
-        latent_dim = VISION_LATENT_DIM if vision else 0
-        if env is None:
-            from ..envs.assembly_env import AssemblyEnv, EnvConfig
-            from ..sim.scene import SimConfig
-
-            env = AssemblyEnv(EnvConfig(task=task, family=family, action_dim=action_dim, num_envs=int(num_envs),
-                                        device=device, seed=seed, vision_latent_dim=latent_dim,
-                                        sim=SimConfig(geometry=geometry)))
-            if vision:
-                from ..envs.camera_latent import CameraLatent
-                from ..prepare.vision import VISION_PRESETS, load_or_make_encoder
-
-                preset = VISION_PRESETS["thesis" if str(device).startswith("cuda") else "quick"]
-                encoder, _ = load_or_make_encoder(task, preset, cache_dir, device, vae_path=vae, log=_quiet,
-                                                  progress=False)
-                env.attach_vision(CameraLatent(env, encoder))
-        else:
-            got = (env.cfg.task, env.cfg.family, env.cfg.action_dim, env.cfg.vision_latent_dim)
-            if got != (task, family, action_dim, latent_dim):
-                raise ValueError(f"env is a {got[0]} {got[1]} {got[2]}D env with a {got[3]}-dimensional vision slot, "
-                                 f"not {task} {family} {action_dim}D with {latent_dim}")
+    def __init__(self, env, action_path=None, tensors: str = "numpy", run_config=None):
+        if tensors not in TENSORS:
+            raise ValueError(f"tensors={tensors!r} is not allowed; allowed: {list(TENSORS)}")
+        if action_path is not None and action_path.env is not env:
+            raise ValueError("the action path drives another env")
         self.env = env
-        self.action_path = None
-        if kgrl:
-            from ..envs.kgrl_action import KGRLActionPath
-
-            from ..prepare.prior import load_or_make_prior
-            tables, _ = load_or_make_prior(task, action_dim, cache_dir, demos=demos, device=device, geometry=geometry,
-                                           log=_quiet)
-            self.action_path = KGRLActionPath(tables, env)
+        self.action_path = action_path
+        self.run_config = run_config
         self._step = self.action_path.step if self.action_path is not None else env.step
         self.tensors = tensors
         self.num_envs = env.num_envs
-        obs_dim = observation_dim(family, latent_dim)
+        obs_dim = observation_dim(env.cfg.family, env.cfg.vision_latent_dim)
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
-        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (env.cfg.action_dim,), np.float32)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
 
@@ -174,11 +133,3 @@ class AssemblyVectorEnv(VectorEnv):
 
     def _out(self, t):
         return t if self.tensors == "torch" else t.detach().cpu().numpy()
-
-
-def _quiet(message: str) -> None:
-    """The cache's progress lines (recording demonstrations, fitting the prior) go to stderr."""
-    import sys
-
-    print(f"vkgrl_newton: {message}", file=sys.stderr)
-

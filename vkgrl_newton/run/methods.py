@@ -15,7 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["Method", "METHODS", "THESIS_METHODS", "RUN_METHODS", "get_method", "methods_where", "names"]
+__all__ = ["Method", "METHODS", "THESIS_METHODS", "RUN_METHODS", "get_method", "methods_where", "names", "OPTION_RULES",
+           "methods_markdown"]
 
 
 @dataclass(frozen=True)
@@ -80,3 +81,25 @@ def methods_where(**what) -> tuple[str, ...]:
 def names(**what) -> str:
     """methods_where(...) as the refusal texts write it: "kgrl, vision_kgrl, kgrl_ppo"."""
     return ", ".join(methods_where(**what))
+
+
+# which train/run.py options apply to a method, by the row's properties (the refusals in run/resolve.py
+# check the same properties); docs/cli.md's table of methods is methods_markdown()'s output
+OPTION_RULES = (
+    ("--sac, --overlap, --no-time-obs", "uses_sac"),
+    ("--ppo", "uses_ppo"),
+    ("--kgrl-recipe", "takes_recipe"),
+    ("--demos, --num-demos, --kmp-reference, --kgrl-reach-floor[-z]", "uses_kmp"),
+    ("--vae", "vision"),
+)
+
+
+def methods_markdown() -> str:
+    """The method table as docs/cli.md shows it (a test holds the two equal)."""
+    head = "| method | learner | action path | vision latent | options that apply beyond the common ones |"
+    rows = [head, "|---|---|---|---|---|"]
+    for m in _ROWS:
+        opts = "; ".join(f"`{o}`" for o, prop in OPTION_RULES if getattr(m, prop))
+        path = "KMP null space (`step_pose`)" if m.uses_kmp else "delta pose (`step`)"
+        rows.append(f"| `{m.name}` | {m.learner} | {path} | {'yes' if m.vision else 'no'} | {opts} |")
+    return "\n".join(rows) + "\n"

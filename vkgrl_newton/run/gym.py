@@ -1,0 +1,84 @@
+"""The gymnasium ids' entry point: an id's configuration -> a `RunConfig` -> the run library's builder
+-> `envs.vector.AssemblyVectorEnv`.
+
+    envs = gymnasium.make_vec("VKGRL/PegInsert-Factory-4D-KGRL-v0", num_envs=16)
+    envs.run_config          # the RunConfig it was built from: train/run.py --method kgrl's env
+
+An id is the env of one train/run.py method (its spec kwargs name it: `method`), built as run.py
+builds it: the same preset default (thesis on CUDA, quick on a CPU; `preset=` to choose), and for the
+KGRL ids the same KGRL recipe's null space (`kgrl_recipe=None`: the preset's default, reach_keep_prior
+on quick with its 3 / 25 mm reach floors, base on thesis: the thesis's null space; the recipe's SAC
+fields are the learner's and do not apply to an env). `gym_config(...)` is that RunConfig without
+building anything (tests hold it equal to run.py's).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..envs.vector import AssemblyVectorEnv, check_vector_kwargs
+from .config import RunConfig
+from .methods import METHODS
+from .presets import DEFAULT_KGRL_RECIPE, KGRL_RECIPES, NO_RECIPE
+
+__all__ = ["make_vec_env", "gym_config"]
+
+
+def _quiet(message: str) -> None:
+    """The cache's progress lines (recording demonstrations, fitting the prior) go to stderr."""
+    print(f"vkgrl_newton: {message}", file=sys.stderr)
+
+
+def gym_config(task: str = "PegInsert", family: str = "factory", action_dim: int = 4, method: str = "sac",
+               num_envs: int = 16, device: str | None = None, seed: int = 0, cache_dir: str | Path = "runs/cache",
+               tensors: str = "numpy", geometry: str = "primitives", vae: str | Path | None = None,
+               demos: str | Path | None = None, preset: str | None = None, kgrl_recipe: str | None = None) -> RunConfig:
+    """The RunConfig of an id's kwargs; ValueError naming the kwarg and the allowed values, before anything is built."""
+    check_vector_kwargs(task, family, action_dim, num_envs, tensors, geometry)
+    if method not in METHODS or METHODS[method].uses_ppo:
+        raise ValueError(f"method={method!r} is not allowed; allowed: "
+                         f"{[m for m, row in METHODS.items() if not row.uses_ppo]} (an id is an env, not a learner)")
+    row = METHODS[method]
+    if demos is not None and not row.uses_kmp:
+        raise ValueError("demos is for the KGRL ids (their prior's demonstrations)")
+    if vae is not None and not row.vision:
+        raise ValueError("vae is for the Vision ids (their frozen encoder)")
+    if kgrl_recipe is not None and (not row.takes_recipe or kgrl_recipe not in KGRL_RECIPES):
+        raise ValueError(f"kgrl_recipe={kgrl_recipe!r} is not allowed; allowed: None (the preset's) or one of "
+                         f"{sorted(KGRL_RECIPES)}, for the KGRL ids")
+    if preset is not None and preset not in DEFAULT_KGRL_RECIPE:
+        raise ValueError(f"preset={preset!r} is not allowed; allowed: None (thesis on CUDA, quick on a CPU) or one of "
+                         f"{sorted(DEFAULT_KGRL_RECIPE)}")
+    from ..runtime import configure_warp, default_device, device_error
+
+    configure_warp()
+    device = device or default_device()
+    if (why := device_error(device, "device")) is not None:
+        raise ValueError(why)
+    preset = preset or ("thesis" if str(device).startswith("cuda") else "quick")
+    recipe_name = (kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]) if row.takes_recipe else None
+    recipe = KGRL_RECIPES[recipe_name] if recipe_name else NO_RECIPE
+    return RunConfig(task=task, method=method, env=family, action_dim=int(action_dim), seed=seed,
+                     num_envs=int(num_envs), preset=preset, geometry=geometry, kgrl_recipe=recipe_name,
+                     demos=Path(demos) if demos is not None else None, vae=Path(vae) if vae is not None else None,
+                     reach_floor_mm=float(recipe["reach_floor_mm"]), reach_floor_z_mm=float(recipe["reach_floor_z_mm"]),
+                     device=device, cache_dir=Path(cache_dir), progress=False)
+
+
+def make_vec_env(task: str = "PegInsert", family: str = "factory", action_dim: int = 4, method: str = "sac",
+                 num_envs: int = 16, tensors: str = "numpy", env=None, **kwargs) -> AssemblyVectorEnv:
+    """gymnasium.make_vec's entry point for the VKGRL ids (kwargs: gym_config's). env: an AssemblyEnv
+    already built for this configuration (tests share one); else it is built here."""
+    cfg = gym_config(task, family, action_dim, method, num_envs=num_envs, tensors=tensors, **kwargs)
+    from .build import build_action_path, build_encoder, build_env
+
+    if env is None:  # in run.py's order: the encoder (its preparation may take minutes), then the env
+        env = build_env(cfg, build_encoder(cfg, log=_quiet))
+    else:
+        got = (env.cfg.task, env.cfg.family, env.cfg.action_dim, env.cfg.vision_latent_dim)
+        if got != (task, family, action_dim, cfg.latent_dim):
+            raise ValueError(f"env is a {got[0]} {got[1]} {got[2]}D env with a {got[3]}-dimensional vision slot, "
+                             f"not {task} {family} {action_dim}D with {cfg.latent_dim}")
+    action_path, _ = build_action_path(cfg, env, log=_quiet)
+    return AssemblyVectorEnv(env, action_path, tensors=tensors, run_config=cfg)
