@@ -10,7 +10,7 @@ Sources: Isaac Lab Factory's `factory_tasks_cfg.py` (asset sizes, masses, fricti
 asset's default position) and `factory_env_cfg.py` (the postures); IsaacGymEnvs'
 `factory_asset_info_gears.yaml` (gear plate and face heights). Where this project's primitive
 geometry departs from Factory's meshes (tooth form, thread helices, clearances) the numbers are
-its own, measured on a CPU to block, slide, mesh and thread (docs/benchmarks.md, "GearMesh and
+its own, measured on a CPU to block, slide, mesh and thread (docs/log/benchmarks.md, "GearMesh and
 NutThread, CPU").
 """
 
@@ -117,7 +117,7 @@ def gear_centres() -> dict[str, tuple[float, float]]:
 # ---------------------------------------------------------------------------------------------
 # NutThread: an M16 x 2 bolt and nut (factory_tasks_cfg.py: bolt base_height 0.01, height 0.025,
 # thread pitch 0.002; nut 24 mm across flats, 0.01 tall, 0.03 kg). Threads are helices of
-# capsules (2.00 mm per turn on MuJoCo-Warp, docs/benchmarks.md): bolt centreline r 7.3 mm, nut
+# capsules (2.00 mm per turn on MuJoCo-Warp, docs/log/benchmarks.md): bolt centreline r 7.3 mm, nut
 # r 7.7 mm, capsule radius 0.45 mm, 24 chords per turn, right-hand. Only where the two can meet
 # is threaded: the bolt's top THREAD_BOLT_TURNS turns and the nut's bottom THREAD_NUT_TURNS turns
 # (the task ends 1.5 pitches below the bolt tip; the wrist turns less than a revolution).

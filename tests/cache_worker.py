@@ -34,7 +34,7 @@ def note(what: str) -> None:
 
 
 if kind == "prior":
-    from vkgrl_newton.agents import kgrl
+    from vkgrl_newton.prepare import prior as kgrl
     from vkgrl_newton.kmp.demos import synthetic_demos
 
     def record(task, path, num_demos, *args):
@@ -46,7 +46,7 @@ if kind == "prior":
     tables, path = kgrl.load_or_make_prior("PegInsert", 4, cache_dir, num_demos=4, log=log)
     print("RESULT", path, float(abs(tables.mean).sum()))
 else:
-    from vkgrl_newton.vision import pipeline
+    from vkgrl_newton.prepare import vision as pipeline
     from vkgrl_newton.vision.vae import DenoisingVAE, VAEConfig, save_vae
 
     preset = pipeline.VisionPreset(resolution=32, num_images=8, vae_epochs=1)

@@ -170,7 +170,7 @@ def test_gear_teeth_mesh_only_when_aligned():
 # ------------------------------------------------------------------ physics (MuJoCo-Warp on CPU)
 
 
-# The mesh runs are short: the thread meshes cost ~0.4 s per frame on a CPU (docs/benchmarks.md).
+# The mesh runs are short: the thread meshes cost ~0.4 s per frame on a CPU (docs/log/benchmarks.md).
 # They start one turn lower: the mesh bolt's thread runs out over its top turn into the pilot.
 NUT_GEOMETRIES = [("primitives", 0.8, 0.4, 0.0), ("mesh", 0.3, 0.15, M16_PITCH)]
 

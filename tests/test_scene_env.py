@@ -635,7 +635,7 @@ def test_blowup_reset_settles_that_world_and_leaves_the_others_untouched(peg_env
     for ref, now in zip(reference, got):
         np.testing.assert_array_equal(now[others], ref[others])
     # the reset world's grasp has settled: over the next 12 control steps (0.8 s, zero action) the part
-    # moves in the hand by well under the 2.3 mm an unsettled grasp showed (docs/benchmarks.md)
+    # moves in the hand by well under the 2.3 mm an unsettled grasp showed (docs/log/benchmarks.md)
     for _ in range(10):
         env.step(z)
     drift = np.linalg.norm(_held_in_tcp(env)[1] - start)

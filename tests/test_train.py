@@ -374,7 +374,7 @@ def test_the_search_acts_in_the_first_prior_rollouts_and_fills_their_buffer(run_
     """--sac prior_rollouts_policy=search through run.py's loop: the search's actions (here a marker
     value in place of KMPSearchPolicy's, which tests/test_prior_learning.py checks on its own) are the
     ones stepped and stored for exactly the first prior_rollouts transitions, the learner's after."""
-    from vkgrl_newton.agents import evaluation
+    from vkgrl_newton.envs import evaluation
 
     marker, calls = 0.25, []
 
@@ -401,7 +401,7 @@ def test_sac_learns_from_the_scripted_demonstrators_rollouts_in_its_first_transi
     actions through the SAC action space are stepped and kept in the second buffer for exactly the first
     prior_rollouts transitions. The real policy acts here (not a marker): its actions are the ones stored,
     in [-1, 1] and not all 0 (the inverse mapping itself: tests/test_delta_command_kernel.py)."""
-    from vkgrl_newton.agents import evaluation
+    from vkgrl_newton.envs import evaluation
 
     made = []
 

@@ -68,7 +68,7 @@ GRIDS = {
     # the thesis's comparison: 48 configurations x 10 seeds (chapter 6)
     "thesis": {"tasks": list(TASKS), "envs": list(ENVS), "action_dims": list(ACTION_DIMS), "methods": list(METHODS),
                "seeds": list(range(10))},
-    # what a 2-core CPU finishes in hours on the quick preset (57 min with kgrl's base recipe, docs/benchmarks.md;
+    # what a 2-core CPU finishes in hours on the quick preset (57 min with kgrl's base recipe, docs/log/benchmarks.md;
     # kgrl's reach_keep_prior trials take 2-4x as long: ~25 min each, two at a time)
     "quick": {"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [4, 6], "methods": ["sac", "kgrl"],
               "seeds": [0, 1, 2]},

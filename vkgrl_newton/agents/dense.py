@@ -3,7 +3,7 @@
 Why: torch's float32 CPU matmul is MKL's sgemm, and MKL takes its AVX2 code path on AMD CPUs
 (its AVX-512 kernels are dispatched on Intel only). oneDNN, which torch also ships and its
 compiler uses, runs AVX-512 on both vendors. On a 2-core AMD EPYC (AVX-512) a 256 x 512 x 256
-product runs at 98 GFLOP/s per core through MKL and 212 through oneDNN (docs/benchmarks.md);
+product runs at 98 GFLOP/s per core through MKL and 212 through oneDNN (docs/log/benchmarks.md);
 the SAC update is ~2/3 matmul. Same products, another summation order: float32 last bits differ
 from `F.linear`, the run stays deterministic on one machine.
 

@@ -234,7 +234,7 @@ class SAC:
         self.log_alpha = torch.tensor(math.log(config.init_alpha), device=self.device, requires_grad=True)
         self.target_entropy = float(-action_dim if config.target_entropy is None else config.target_entropy)
         # fused: one kernel per parameter tensor instead of ~10 (the for-loop update is ~10 % of a
-        # gradient step on a CPU; docs/benchmarks.md)
+        # gradient step on a CPU; docs/log/benchmarks.md)
         adamw = dict(lr=config.lr, weight_decay=config.weight_decay, fused=True)
         self.actor_optim = torch.optim.AdamW(self.actor.parameters(), **adamw)
         self.critic_optim = torch.optim.AdamW(self.critic.parameters(), **adamw)

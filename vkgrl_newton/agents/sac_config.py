@@ -37,7 +37,7 @@ class SACConfig:
     obs_normalization: bool = True
     # rsl-rl EmpiricalNormalization's eps: inputs are (x - mean) / (std + eps), so a dimension
     # whose spread is below eps is not blown up to unit scale. rsl-rl's default 1e-2 squeezes
-    # KGRL's TCP offsets (std 6-9 mm) to ~0.4 (docs/benchmarks.md).
+    # KGRL's TCP offsets (std 6-9 mm) to ~0.4 (docs/log/benchmarks.md).
     obs_norm_eps: float = 1e-2
     # Decoupled weight decay of AdamW for actor and critics. 1e-4 is optax.adamw's default,
     # which the thesis used through SBX (torch's default would be 1e-2). log_alpha uses plain
@@ -53,7 +53,7 @@ class SACConfig:
     log_std_max: float = 2.0
     # None: the default init (std ~1 at the start). A number: the actor starts at mean 0 with this
     # std (pre-tanh) whatever the observation, as RSL-RL-SAC's small-sigma init: for KGRL a = 0 is
-    # the prior, and std ~1 explores ~7 mm around it against a 0.06 mm clearance (docs/benchmarks.md)
+    # the prior, and std ~1 explores ~7 mm around it against a 0.06 mm clearance (docs/log/benchmarks.md)
     actor_init_std: float | None = None
     # How log_std is kept in [log_std_min, log_std_max]: "clamp" (SB3/SBX, the thesis's code: no
     # gradient beyond the bounds, so a std pushed to the bound stays there) or "tanh" (CleanRL,
@@ -165,7 +165,7 @@ SAC_PRESETS: dict[str, SACConfig] = {
     # A 2-core CPU, 16 worlds: a smaller net, an early start and 16 gradient steps per batched env
     # step (update-to-data ratio 1): measured against 32 (ratio 2) on kgrl seeds 0-1 it learned at
     # least as well at equal transitions (success 0.34 / 0.03 against 0.09 / 0.00) in ~0.8x the
-    # wall, and it balances the learner against the env for the overlapped loop (docs/benchmarks.md).
+    # wall, and it balances the learner against the env for the overlapped loop (docs/log/benchmarks.md).
     "quick": SACConfig(
         buffer_size=200_000, hidden_dims=(256, 256), learning_starts=1_024, gradient_steps=16, policy_delay=2
     ),

@@ -128,7 +128,7 @@ class KMPPriorPolicy(Policy):
 @dataclass(frozen=True)
 class SearchParams:
     """KMPSearchPolicy's settings (mm, control steps). Defaults: session 15's `arch_settle`
-    (docs/benchmarks.md, "the gap is information"), +0.203 over the prior on PegInsert Factory 4D."""
+    (docs/log/benchmarks.md, "the gap is information"), +0.203 over the prior on PegInsert Factory 4D."""
 
     blocked_mm: float = 15.0  # blocked: the TCP this far above the prior's final height ...
     stall_steps: int = 15  # ... having descended less than stall_mm over this many steps ...

@@ -342,7 +342,7 @@ class EmpiricalReference:
     for demonstrations that share their time base (the scripted ones: one control grid).
 
     Why: a 7-component GMM over (s, eta) cannot follow PegInsert's descent (the prior sat 4 mm
-    below the demonstrations' mean at n = 60 with an sd 2.4x theirs, docs/benchmarks.md); the
+    below the demonstrations' mean at n = 60 with an sd 2.4x theirs, docs/log/benchmarks.md); the
     demonstrations' own statistics are what GMR estimates, without the mixture's bias.
     """
 

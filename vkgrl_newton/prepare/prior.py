@@ -97,6 +97,6 @@ def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, lo
     if demo_set is None or len(demo_set.demo_lengths) < num_demos:
         got = 0 if demo_set is None else len(demo_set.demo_lengths)
         raise RuntimeError(f"the scripted demonstrator seated the part in only {got} of {episodes * num_envs} "
-                           f"episodes, {num_demos} needed; see docs/benchmarks.md for its success rate")
+                           f"episodes, {num_demos} needed; see docs/log/benchmarks.md for its success rate")
     path.parent.mkdir(parents=True, exist_ok=True)
     demo_set.save(path)

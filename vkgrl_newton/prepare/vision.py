@@ -17,7 +17,7 @@ together on an empty cache collect and train once, the others wait and reuse.
 Presets: `thesis` as Tables 5.5-5.6 (256 x 256, 130,000 images, 400 epochs, batch 128, eq. 4.48
 as written, GroupNorm, Table 5.6's cameras: a GPU job); `quick`, small enough for a 2-core CPU
 (64 x 64, 4,096 images, 10 epochs of batch 32, ~5 min), with changes measured on PegInsert's quick
-image sets (docs/benchmarks.md), without which the VAE never leaves the mean-image plateau on this
+image sets (docs/log/benchmarks.md), without which the VAE never leaves the mean-image plateau on this
 budget or does not see the hole well enough:
 - no GroupNorm (`VAEConfig.group_norm=False`): with it, a plain autoencoder could not even fit
   64 images in 400 full-batch steps (encoder means equal for all images); without it, it leaves

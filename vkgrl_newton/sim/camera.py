@@ -78,7 +78,7 @@ TASK_CAMERAS = {
     "NutThread": CameraSpec(pos_hand=(0.0, 0.0, 0.065), rpy_deg=(0.0, 0.0, 90.0)),
 }
 
-# The cameras aimed at where the parts meet (the quick vision preset's; docs/benchmarks.md, issue
+# The cameras aimed at where the parts meet (the quick vision preset's; docs/log/benchmarks.md, issue
 # 19). PegInsert: Table 5.6's mount, its optical axis tilted 29 degrees instead of 20 toward the
 # gripper axis, through the peg's tip (0.146 m along the hand z, 0.08 m beside the mount:
 # atan(0.08 / 0.146) = 28.7 degrees; at 20 the tip sits ~27 mm off the image centre), and a 48 mm

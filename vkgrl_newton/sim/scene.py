@@ -38,7 +38,7 @@ __all__ = ["SimConfig", "Scene", "build_scene", "default_device", "SOLVERS"]
 # capsule threads; the default), or closed triangle meshes (solid box-tooth gears, ISO 68-1
 # threads; assets_usd/part_meshes.py) which on CUDA get signed distance fields (Newton builds
 # mesh SDFs on CUDA only) and on a CPU collide through Newton's triangle BVH path (slow: NutThread
-# env steps ~30x slower than on the primitives with newton 1.8.0; docs/benchmarks.md, "The mesh variant")
+# env steps ~30x slower than on the primitives with newton 1.8.0; docs/log/benchmarks.md, "The mesh variant")
 SDF_VOXEL = {"GearMesh": 0.00025, "NutThread": 0.0001}  # m (keys: tasks.MESH_TASKS): a quarter of a tooth clearance, half a thread crest
 SDF_BAND = (-0.002, 0.002)  # m, narrow band of the SDFs
 SDF_MARGIN = 0.005  # m, AABB padding of the SDFs (more than any contact gap here)
@@ -71,7 +71,7 @@ class SimConfig:
     nconmax: int | None = None
     njmax: int | None = None
     # Newton's collision pipeline every substep (True), or once per 1/120 s physics step, its
-    # contacts reused by the other substeps (docs/benchmarks.md measures both)
+    # contacts reused by the other substeps (docs/log/benchmarks.md measures both)
     collide_every_substep: bool = True
     robot_usd: str | None = None  # a user's own robot stage (same body/joint names); None: the bundled Franka
     geometry: str = "primitives"  # GEOMETRIES
@@ -111,7 +111,7 @@ class SimConfig:
 
 
 # (nconmax, njmax) per world when SimConfig leaves them None: 1.5x the peaks measured over one scripted
-# and one random episode of 4 worlds (`python -m vkgrl_newton.tools.contact_peaks`, docs/benchmarks.md),
+# and one random episode of 4 worlds (`python -m vkgrl_newton.tools.contact_peaks`, docs/log/benchmarks.md),
 # rounded up to a multiple of 32. Contacts share one buffer across worlds (peak total / worlds);
 # constraint rows are per world. MuJoCo-Warp's cost grows with the allocation, not just the use, and
 # an overflow is counted and warned (AssemblyEnv.contact_overflows_total), never silent.
@@ -235,7 +235,7 @@ def add_part_meshes(builder: newton.ModelBuilder, task: str, sdf_device: str | N
     with a primitive triangle by triangle and drops the triangles that face away from the
     primitive's centre, which fails for a concave part: a solid disc mesh rests on a box plate
     within 0.01 mm, the same disc with a bore sinks 2.5 mm to the plate's mid-plane
-    (docs/benchmarks.md). PegInsert has no mesh variant (its primitives are exact)."""
+    (docs/log/benchmarks.md). PegInsert has no mesh variant (its primitives are exact)."""
     from ..assets_usd import part_meshes as pm
 
     error = geometry_error(task, "mesh")

@@ -4,7 +4,7 @@
     (`python -m vkgrl_newton.gpu_check` still works: it forwards here)
 
 Run that once on a CUDA machine (e.g. `--out docs/gpu_check_h200.json`) and put the figures into
-docs/benchmarks.md with the device named (the report's `meta.device_name`). It takes about 10
+docs/log/benchmarks.md with the device named (the report's `meta.device_name`). It takes about 10
 minutes: `--budget-s` (default 600) is checked before each check and before each (task, worlds)
 run of graph_vs_eager; from the first one that starts after the budget is spent, everything left
 is recorded as {"skipped": "time budget"}. A run that has started finishes, so the command can

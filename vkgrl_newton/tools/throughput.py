@@ -94,7 +94,7 @@ def measure(num_worlds: int, steps: int, device: str | None = None, warmup: int 
         "ms_per_env_step": plain / steps * 1e3,
         "env_steps_per_s": num_worlds * steps / plain,
         "realtime_factor": num_worlds * steps * (1.0 / 15.0) / plain,
-        # world-substeps of the timed stretch: the unit of native MuJoCo's cost (docs/benchmarks.md)
+        # world-substeps of the timed stretch: the unit of native MuJoCo's cost (docs/log/benchmarks.md)
         "us_per_world_substep": plain / (steps * num_worlds * 8 * env.substeps) * 1e6,
         "contact_overflows": env.contact_overflows_total,
     }

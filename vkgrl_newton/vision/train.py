@@ -278,7 +278,7 @@ def probe_vae(vae_path, image_dir, batch_size: int = 128, device: str | torch.de
     training splits and scored on all their validation splits (episodes told apart per set). A
     probe's readout is fitted on finite data: measured on PegInsert's quick VAE, the near-hole MLP's
     x error on the same 695 held-out frames fell from ~0.6 mm fitted on one set's ~1 400 frames to
-    0.49 on two sets' 2 865 and 0.46 on 4 231 (docs/benchmarks.md), so pooling sets the VAE never
+    0.49 on two sets' 2 865 and 0.46 on 4 231 (docs/log/benchmarks.md), so pooling sets the VAE never
     saw measures what the latent holds rather than the readout's sample size."""
     dirs = list(image_dir) if isinstance(image_dir, (list, tuple)) else [image_dir]
     if not dirs:
