@@ -98,6 +98,7 @@ def test_a_run_without_a_checkpoint_is_one_clear_message_with_or_without_resume(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
 
 
+@pytest.mark.slow
 def test_sigterm_checkpoints_a_real_run_and_resume_continues(tmp_path):
     from vkgrl_newton.agents.checkpoint import load_checkpoint
 
@@ -166,6 +167,7 @@ def test_a_stopped_sweep_marks_its_trials_interrupted_and_reads_them(tmp_path):
     assert Path(run_dir / "trial.json").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("content, message", [
     (None, "does not exist"),
     (b"just text\n", "not a readable demonstration file (an .npz archive)"),
@@ -230,6 +232,7 @@ DEVICE_CASES = [  # (command, its device flag): every CLI that takes a device
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("argv, flag", DEVICE_CASES, ids=lambda v: v[1] if isinstance(v, list) else v)
 @pytest.mark.parametrize("device", ["gpu", "cuda:7"])
 def test_every_cli_refuses_a_device_it_cannot_use_in_one_line(argv, flag, device, tmp_path):
@@ -253,6 +256,7 @@ def _wait_for(predicate, proc, limit_s: float, what: str) -> None:
         time.sleep(0.2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["collect_demos", "collect_images"])
 def test_sigterm_stops_a_collection_in_one_line_and_leaves_nothing(command, tmp_path):
     """SIGTERM once the command works on its output: exit 143, one line naming the signal, no
@@ -345,6 +349,7 @@ def test_docs_cli_table_names_every_tested_refusal():
         assert phrase in doc, phrase
 
 
+@pytest.mark.slow
 def test_collect_images_refuses_a_resolution_no_vae_accepts(tmp_path):
     """Checked at collection time, not after hours of rendering when train_vae.py refuses it."""
     out = subprocess.run([sys.executable, "train/collect_images.py", "--resolution", "100", "--out", str(tmp_path / "i")],

@@ -6,6 +6,7 @@ import json
 import pytest
 
 
+@pytest.mark.slow
 def test_cpu_report(wp_cpu, tmp_path):
     from vkgrl_newton.tools import gpu_check
 

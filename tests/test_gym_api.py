@@ -209,6 +209,7 @@ def test_the_readmes_learner_examples_run(demos, tmp_path, wp_cpu):
     assert all(old in used for old in README_SMALL)  # every replacement applied to some block
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", sorted(TASKS))
 def test_every_registered_id_makes_resets_and_steps(task, tmp_path_factory, wp_cpu):
     """Each of the task's 16 ids through gymnasium.make_vec with 1 world on the CPU: the KGRL ids with

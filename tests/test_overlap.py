@@ -35,6 +35,7 @@ def test_without_updates_both_loops_store_the_same_transitions(run_py, wp_cpu, t
     assert serial["agent"]["counters"][2] == overlap["agent"]["counters"][2] == 0  # nothing learned
 
 
+@pytest.mark.slow
 def test_overlap_is_deterministic_and_acts_one_update_late(run_py, wp_cpu, tmp_path, monkeypatch):
     from vkgrl_newton.agents.sac import SAC
 

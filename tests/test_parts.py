@@ -175,6 +175,7 @@ def test_gear_teeth_mesh_only_when_aligned():
 NUT_GEOMETRIES = [("primitives", 0.8, 0.4, 0.0), ("mesh", 0.3, 0.15, M16_PITCH)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("geometry, duration, min_turns, start_depth", NUT_GEOMETRIES)
 def test_nut_advances_one_pitch_per_turn(request, geometry, duration, min_turns, start_depth):
     """Started resting on the bolt's top thread turn and turned clockwise under a 0.5 N push, the
@@ -194,6 +195,7 @@ def test_nut_advances_one_pitch_per_turn(request, geometry, duration, min_turns,
     assert np.hypot(r.pos[-1, 0, 0], r.pos[-1, 0, 1]) < 0.0005
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("geometry, start_depth", [(g, d) for g, _, _, d in NUT_GEOMETRIES])
 def test_nut_does_not_descend_without_turning(request, geometry, start_depth):
     from vkgrl_newton.tools.parts import nut_rest_height, run_drive

@@ -63,6 +63,7 @@ def _rollout(env, path, steps=STEPS, hook=None):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family,action_dim,path", [
     ("factory", 4, "step"), ("forge", 6, "step"), ("factory", 6, "step_pose"), ("forge", 4, "step_pose")])
 def test_graph_equals_eager(wp_cpu, family, action_dim, path):
@@ -84,6 +85,7 @@ def test_graph_equals_eager(wp_cpu, family, action_dim, path):
                 assert torch.equal(a[key], b[key]), f"step {i}: {key} differs, max {(a[key] - b[key]).abs().max()}"
 
 
+@pytest.mark.slow
 def test_reallocated_array_triggers_a_recapture(wp_cpu):
     """The env's command buffer is replaced by a new one (the pose path writes the command there
     before each control step): a graph still reading the old buffer would track the old command,
@@ -108,6 +110,7 @@ def test_reallocated_array_triggers_a_recapture(wp_cpu):
     assert not torch.equal(ref[3]["body_q"], ref[2]["body_q"])  # the commands moved the arm meanwhile
 
 
+@pytest.mark.slow
 def test_contact_overflow_is_counted_and_warned(wp_cpu):
     """Buffers too small for the grasp's contacts (> 2 per world): counted, reported, warned, never
     silent, and the same count in the graph as in the eager reference."""
@@ -130,6 +133,7 @@ def test_contact_overflow_is_counted_and_warned(wp_cpu):
     assert bits & int(SolverMuJoCo.OverflowBits.CONTACT_PIPELINE | SolverMuJoCo.OverflowBits.SOLVER_NCONMAX)
 
 
+@pytest.mark.slow
 def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
     import json
 
@@ -165,6 +169,7 @@ def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
         throughput.main(["--vision", "blurry", "--json", str(tmp_path / "w.json")])
 
 
+@pytest.mark.slow
 def test_collision_once_per_physics_step(wp_cpu):
     """SimConfig(collide_every_substep=False): one collide per physics step, its contacts used by
     all of its substeps (the default collides before every substep)."""

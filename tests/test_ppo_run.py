@@ -62,7 +62,7 @@ def test_ppo_configuration_overrides_by_dotted_path_and_refuses_the_unknown():
     (["--method", "ppo", "--sac", "lr=1"], "--sac is for the SAC methods"),
     (["--method", "ppo", "--no-time-obs"], "--no-time-obs is for the SAC methods"),
     (["--method", "kgrl_ppo", "--overlap"], "--overlap is for the SAC methods"),
-    (["--method", "sac", "--ppo", "num_steps_per_env=8"], "--ppo is for the ppo methods (ppo, kgrl_ppo), not 'sac'"),
+    (["--method", "sac", "--ppo", "num_steps_per_env=8"], "--ppo is for the ppo methods (ppo, kgrl_ppo, vision_ppo), not 'sac'"),
     (["--method", "ppo", "--ppo", "algorithm.gama=1"], "--ppo: PPO setting 'algorithm.gama' unknown"),
     (["--method", "ppo", "--kgrl-reach-floor", "3"], "--kgrl-reach-floor is for the kgrl methods"),
     (["--method", "ppo", "--ppo", "save_interval=5"], "save_interval is for rsl-rl's OnPolicyRunner"),
@@ -76,6 +76,7 @@ def test_run_ppo_bad_flags_are_one_line_errors(run_py, argv, message, capsys):
     assert message in err
 
 
+@pytest.mark.slow
 def test_run_ppo_stop_in_mid_rollout_keeps_the_last_update_and_resumes(run_py, wp_cpu, tmp_path, monkeypatch,
                                                                          capsys):
     from vkgrl_newton.agents.checkpoint import load_checkpoint
@@ -138,6 +139,7 @@ def test_run_ppo_stop_in_mid_rollout_keeps_the_last_update_and_resumes(run_py, w
         assert e.value.code == 2 and message in capsys.readouterr().err.strip().splitlines()[-1]
 
 
+@pytest.mark.slow
 def test_run_kgrl_ppo_starts_at_the_prior_and_reports_the_paired_gain(run_py, wp_cpu, tmp_path, demos_file):
     from vkgrl_newton.agents.checkpoint import load_checkpoint
 

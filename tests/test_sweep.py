@@ -151,6 +151,7 @@ def test_variants_and_method_args_reach_their_trials_and_only_theirs(sweep_py, t
         sweep_py.validate_grid({**base, "method_arg": {}})
 
 
+@pytest.mark.slow
 def test_sweep_finishes_retries_a_killed_trial_and_restarts_nothing(sweep_py, wp_cpu, tmp_path, capsys):
     out = tmp_path / "sweep"
     grid = [*GRID, "--action-dims", "4", "6", "--seeds", "0", "1"]  # 2 x 2 trials, 2 at a time on 2 cores
@@ -189,6 +190,7 @@ def test_sweep_finishes_retries_a_killed_trial_and_restarts_nothing(sweep_py, wp
     assert "holds another sweep" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_path, capsys):
     out = tmp_path / "sweep"
     grid = [*GRID, "--action-dims", "4", "--seeds", "0", "1", "--max-concurrent", "1"]
@@ -220,6 +222,7 @@ def test_a_killed_driver_started_again_finishes_the_rest(sweep_py, wp_cpu, tmp_p
 
 
 
+@pytest.mark.slow
 def test_sigterm_to_the_driver_marks_trials_interrupted_and_a_restart_resumes_them(sweep_py, wp_cpu, tmp_path):
     """SIGTERM (a scheduler's pre-emption) stops the driver like Ctrl-C, after Ray installed its own
     handler: exit 143, the running trial is marked interrupted, and the same command resumes it."""

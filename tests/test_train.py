@@ -250,6 +250,7 @@ def read_scalars(tb_dir: Path) -> dict:
     return {tag: [e.value for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
 
 
+@pytest.mark.slow
 def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatch):
     from vkgrl_newton.agents.checkpoint import load_checkpoint
     from vkgrl_newton.envs.assembly_env import AssemblyEnv
@@ -320,6 +321,7 @@ def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatc
     assert exc.value.code == 2
 
 
+@pytest.mark.slow
 def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos_file):
     run_dir = tmp_path / "kgrl"
     code = run_py.main(["--method", "kgrl", "--run-dir", str(run_dir), "--demos", str(peg_demos_file),
@@ -490,7 +492,7 @@ def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cp
     assert exc.value.code == 2 and "kgrl_recipe" in capsys.readouterr().err
     # so is another reach floor, in one line, before the env is built (train() is never entered)
     with monkeypatch.context() as m:
-        m.setattr(run_py, "train", lambda *a, **k: pytest.fail("train() entered before the refusal"))
+        m.setattr("vkgrl_newton.run.train.train", lambda *a, **k: pytest.fail("train() entered before the refusal"))
         for flag in ("--kgrl-reach-floor", "--kgrl-reach-floor-z"):
             with pytest.raises(SystemExit) as exc:
                 run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress", flag, "3"])
@@ -535,6 +537,7 @@ def test_run_bad_flags_are_argparse_errors(run_py, argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_run_vision_kgrl_with_a_given_vae_and_evaluate_its_checkpoint(run_py, wp_cpu, tmp_path, peg_demos_file,
                                                                        capsys):
     from vkgrl_newton.vision import DenoisingVAE, VAEConfig, save_vae

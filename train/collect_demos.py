@@ -18,7 +18,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # light modules only until the arguments are checked (see train/evaluate.py)
-from vkgrl_newton.cli_types import device_name, positive_int  # noqa: E402
+from vkgrl_newton.cli_types import add_device_option, device_name, positive_int  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.tasks import FAMILIES, TASKS  # noqa: E402
@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     ap.add_argument("--num-envs", type=positive_int, default=16)
     ap.add_argument("--max-episodes", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--device", default=None, type=device_name, help="cpu, cuda or cuda:N (default: cuda:0 when present)")
+    add_device_option(ap)
     ap.add_argument("--out", type=Path, required=True, help="output .npz (never overwritten)")
     args = parse_cli(ap, argv, device=True)
     if args.num_demos < 2:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton.cli_types import positive_int, device_name  # noqa: E402
+from vkgrl_newton.cli_types import add_device_option, positive_int, device_name  # noqa: E402
 
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frame-stride", type=positive_int, default=d.frame_stride)
     ap.add_argument("--val-fraction", type=float, default=None)
     ap.add_argument("--seed", type=int, default=None)
-    ap.add_argument("--device", default=None, type=device_name, help="cpu or cuda:0 (default: cuda:0 when present)")
+    add_device_option(ap)
     ap.add_argument("--no-progress", action="store_true")
     args = parse_cli(ap, argv, device=True)
     if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):

@@ -32,7 +32,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton.cli_types import nonnegative_int, positive_float, positive_int  # noqa: E402
+from vkgrl_newton.cli_types import add_device_option, nonnegative_int, positive_float, positive_int  # noqa: E402
 from vkgrl_newton.runtime import default_device, parse_cli  # noqa: E402  (light: Warp loads inside)
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 
@@ -60,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=nonnegative_int, default=None, help="default 0")
     ap.add_argument("--channels", type=_channels, default=None, metavar="C1,C2,C3,C4,C5",
                     help=f"encoder widths, multiples of 8 (default {','.join(map(str, DEFAULT_CHANNELS))})")
-    ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    add_device_option(ap)
     ap.add_argument("--kl-warmup-epochs", type=nonnegative_int, default=None,
                     help="epochs over which the KL weight rises from 0 to --kl-weight (default 0, the thesis)")
     ap.add_argument("--kl-weight", type=positive_float, default=None,

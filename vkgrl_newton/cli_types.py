@@ -75,9 +75,11 @@ def stderr_without(*needles: str):
                 sys.stderr.write("".join(rest))
 
 
-def add_device_option(parser, help: str = "cpu or cuda:0 (default: cuda:0 when present)") -> None:
-    """`--device`, spelled and checked the same way by every command line."""
-    parser.add_argument("--device", default=None, type=device_name, help=help)
+def add_device_option(parser, default: str | None = None, help: str | None = None) -> None:
+    """`--device`, spelled and checked the same way by every command line (whether this machine has it:
+    `runtime.device_error`, once Warp is loaded)."""
+    help = help or f"{DEVICE_FORMS} (default: {default or 'cuda:0 when present, else cpu'})"
+    parser.add_argument("--device", default=default, type=device_name, help=help)
 
 
 def add_eager_physics_flag(parser) -> None:

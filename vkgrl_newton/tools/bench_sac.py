@@ -30,6 +30,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..cli_types import add_device_option
 from vkgrl_newton.agents.sac import SAC, make_sac_config
 from vkgrl_newton.cli_types import device_name
 from vkgrl_newton.runtime import device_error, parse_cli
@@ -95,7 +96,7 @@ def make_sb3(args: argparse.Namespace, data: dict[str, np.ndarray]) -> Callable[
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--device", default="cpu", type=device_name, help="cpu, cuda or cuda:N (default: cpu)")
+    add_device_option(p, default="cpu")
     p.add_argument("--steps", type=int, default=50, help="gradient steps per timed call")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--obs-dim", type=int, default=8)

@@ -26,6 +26,7 @@ from pathlib import Path
 import torch
 import warp as wp
 
+from ..cli_types import add_device_option
 from .._io import atomic_write_text
 from ..runtime import parse_cli
 from ..envs.camera_latent import CameraLatent
@@ -83,7 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", nargs="+", default=None, help="vision presets' cameras (prepare.vision.VISION_PRESETS)")
     ap.add_argument("--task", default="PegInsert")
     ap.add_argument("--calls", type=int, default=3)
-    ap.add_argument("--device", default=None)
+    add_device_option(ap)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
     args = parse_cli(ap, argv, device=True)

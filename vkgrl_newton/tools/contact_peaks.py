@@ -23,7 +23,7 @@ import torch
 import warp as wp
 
 from .._io import atomic_write_text
-from ..cli_types import positive_int
+from ..cli_types import add_device_option, positive_int
 from ..runtime import parse_cli
 from ..sim.scene import TASK_CONTACT_LIMITS, SimConfig
 from ..tasks import TASKS
@@ -89,7 +89,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tasks", nargs="+", default=sorted(TASKS), choices=sorted(TASKS))
     ap.add_argument("--policies", nargs="+", default=list(POLICIES), choices=POLICIES)
     ap.add_argument("--num-worlds", type=positive_int, default=8)
-    ap.add_argument("--device", default=None)
+    add_device_option(ap)
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
     args = parse_cli(ap, argv, device=True)
     if args.json is not None and args.json.exists():

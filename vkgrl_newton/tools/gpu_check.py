@@ -66,7 +66,7 @@ import torch
 import warp as wp
 
 from .._io import atomic_write, atomic_write_text
-from ..cli_types import device_name
+from ..cli_types import add_device_option, device_name
 from ..runtime import parse_cli, torch_device
 from ..signals import run_cli
 
@@ -430,7 +430,7 @@ def _positive_int(flag):
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     ap = argparse.ArgumentParser(prog="python -m vkgrl_newton.tools.gpu_check", description=__doc__.split("\n")[0])
-    ap.add_argument("--device", default=None, type=device_name, help="a Warp device: cuda:0, cpu (default: cuda:0 when present)")
+    add_device_option(ap)
     ap.add_argument("--out", type=Path, default=None,
                     help="report file, never overwritten (default runs/gpu_check/<device>_<UTC time>.json)")
     ap.add_argument("--worlds", type=_positive_int("--worlds"), nargs="+", default=None,

@@ -30,6 +30,7 @@ import warp as wp
 
 import newton
 
+from ..cli_types import add_device_option
 from ..assets_usd import TASK_USD
 from ..assets_usd.dimensions import (FIXED_ASSET_NOMINAL_POS, GEAR_MEDIUM_X, GEAR_TEETH, THREAD_BOLT_RADIUS,
                                      THREAD_BOLT_TOP, THREAD_CAPSULE_RADIUS, THREAD_NUT_BOTTOM, THREAD_NUT_RADIUS,
@@ -172,7 +173,7 @@ def main(argv=None) -> int:
     ap.add_argument("--task", choices=("NutThread", "GearMesh"), required=True)
     ap.add_argument("--geometry", choices=GEOMETRIES, default="primitives",
                     help="the parts' collision geometry (mesh: SDFs on CUDA, Newton's triangle BVH path on a CPU)")
-    ap.add_argument("--device", default="cpu")
+    add_device_option(ap, default="cpu")
     args = parse_cli(ap, argv, device=True)
     config = lambda nw: SimConfig(num_worlds=nw, device=args.device, geometry=args.geometry)  # noqa: E731
     if args.task == "NutThread":

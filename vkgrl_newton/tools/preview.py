@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cli_types import add_device_option
 from .._io import atomic_write
 from ..runtime import parse_cli
 from ..sim.camera import CAMERA_SETS, TaskCamera
@@ -53,7 +54,7 @@ def main(argv=None) -> int:
     ap.add_argument("--num-worlds", type=int, default=4)
     ap.add_argument("--steps", type=int, default=18, help="scripted control steps before rendering")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when present)")
+    add_device_option(ap)
     ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES, help="GearMesh/NutThread part geometry")
     ap.add_argument("--camera", default="table5.6", choices=sorted(CAMERA_SETS),
                     help="table5.6 (the thesis's cameras) or contact (the quick vision preset's)")

@@ -41,7 +41,7 @@ import torch
 import warp as wp
 
 from .._io import atomic_write_text
-from ..cli_types import device_name
+from ..cli_types import add_device_option, device_name
 from ..runtime import parse_cli
 from ..signals import run_cli
 from ..tasks import TASKS, get_task
@@ -117,7 +117,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--num-worlds", type=int, nargs="+", default=[1, 16, 64])
     ap.add_argument("--steps", type=int, default=10, help="timed env steps per run")
-    ap.add_argument("--device", default=None, type=device_name, help="cpu or cuda:0 (default: cuda:0 when present)")
+    add_device_option(ap)
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
     ap.add_argument("--task", default="PegInsert", choices=sorted(TASKS))
     ap.add_argument("--policy", default="zero", choices=("zero", "scripted"))
