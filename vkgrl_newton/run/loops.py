@@ -146,17 +146,8 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
             else:
                 (next_obs, reward, dones, extras), dt = loop.timed_step(a)
             loop.env_time += dt
-            x_next = policy_observation(next_obs, loop.time_obs)
-            if "final_observations" in extras:  # time-outs bootstrap from the state they ended in
-                final = policy_observation(extras["final_observations"], loop.time_obs)
-                x_next = torch.where(dones.unsqueeze(-1), final, x_next)
-            # episodes end by time-out only: nothing is terminal; blown-up worlds' rows are dropped
-            # (the env has counted them on the host already: no extra sync on the common path)
-            if extras["log"]["/physics_resets"] == 0:
-                agent.add(x, a, reward, x_next, not_terminal)
-            else:
-                keep = ~extras["physics_resets"]
-                agent.add(x[keep], a[keep], reward[keep], x_next[keep], not_terminal[keep])
+            _store(agent, x, a, reward, _bootstrap_inputs(next_obs, dones, extras, loop.time_obs), extras,
+                   not_terminal)
             obs = next_obs
             loop.after_step(extras)
             if pool is not None:
@@ -182,6 +173,30 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
     loop.checkpoint()
     loop.bar.close()
     return None
+
+
+def _bootstrap_inputs(next_obs, dones, extras: dict, time_obs: bool):
+    """The policy inputs a transition bootstraps from: the next observation, or for a world whose
+    episode timed out the observation it ended in (the env has already reset it)."""
+    import torch
+
+    from ..envs.evaluation import policy_observation
+
+    x_next = policy_observation(next_obs, time_obs)
+    if "final_observations" in extras:  # time-outs bootstrap from the state they ended in
+        final = policy_observation(extras["final_observations"], time_obs)
+        x_next = torch.where(dones.unsqueeze(-1), final, x_next)
+    return x_next
+
+
+def _store(agent, x, a, reward, x_next, extras: dict, not_terminal) -> None:
+    """Episodes end by time-out only: nothing is terminal; blown-up worlds' rows are dropped (the env
+    has counted them on the host already: no extra sync on the common path)."""
+    if extras["log"]["/physics_resets"] == 0:
+        agent.add(x, a, reward, x_next, not_terminal)
+    else:
+        keep = ~extras["physics_resets"]
+        agent.add(x[keep], a[keep], reward[keep], x_next[keep], not_terminal[keep])
 
 
 def ppo_loop(loop: Loop, payload: dict | None) -> int | None:
