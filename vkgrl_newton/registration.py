@@ -1,6 +1,8 @@
 """gymnasium ids for every task x family x action space x observation/action variant.
 
-`import vkgrl_newton` registers them (`register_envs`, idempotent); `gymnasium.make_vec(id,
+`import vkgrl_newton` registers them (`register_envs`, idempotent); `gymnasium.make(id)` builds one
+world as a gymnasium `Env` (`envs.vector.AssemblySingleEnv`: for the env checkers, wrappers and
+single-env learners); `gymnasium.make_vec(id,
 num_envs=N, **kwargs)` builds an `envs.vector.AssemblyVectorEnv` (one batched simulation of N
 worlds):
 
@@ -27,6 +29,7 @@ __all__ = ["NAMESPACE", "VARIANTS", "env_id", "env_ids", "register_envs"]
 
 NAMESPACE = "VKGRL"
 VECTOR_ENTRY_POINT = "vkgrl_newton.run.gym:make_vec_env"  # through the run library's builder
+ENTRY_POINT = "vkgrl_newton.run.gym:make_env"  # gymnasium.make: one world (envs.vector.AssemblySingleEnv)
 VARIANTS = {"": (False, False), "-KGRL": (True, False), "-Vision": (False, True), "-Vision-KGRL": (True, True)}
 # (kgrl, vision): SAC, KGRL, Vision-SAC and Vision-KGRL's env of the thesis: the train/run.py method of each
 VARIANT_METHODS = {(False, False): "sac", (True, False): "kgrl", (False, True): "vision_sac", (True, True): "vision_kgrl"}
@@ -63,5 +66,5 @@ def register_envs() -> list[str]:
 
     for name, kwargs in env_ids().items():
         if name not in gym.registry:
-            gym.register(id=name, vector_entry_point=VECTOR_ENTRY_POINT, kwargs=dict(kwargs))
+            gym.register(id=name, entry_point=ENTRY_POINT, vector_entry_point=VECTOR_ENTRY_POINT, kwargs=dict(kwargs))
     return list(env_ids())

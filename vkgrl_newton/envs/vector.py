@@ -36,11 +36,12 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from ..tasks import ACTION_DIMS, FAMILIES, TASKS, geometry_error, observation_dim
+from ..tasks import ACTION_DIMS, CONTROL_DT, FAMILIES, TASKS, geometry_error, observation_dim
 
-__all__ = ["AssemblyVectorEnv", "TENSORS", "check_vector_kwargs"]
+__all__ = ["AssemblyVectorEnv", "AssemblySingleEnv", "TENSORS", "RENDER_MODES", "check_vector_kwargs"]
 
 TENSORS = ("numpy", "torch")
+RENDER_MODES = ("rgb_array",)
 
 
 def check_vector_kwargs(task: str, family: str, action_dim: int, num_envs: int, tensors: str, geometry: str) -> None:
@@ -62,16 +63,24 @@ class AssemblyVectorEnv(VectorEnv):
     run library's builder, so that an id's env is the env train/run.py trains on); action_path: the KGRL
     action path (envs.kgrl_action.KGRLActionPath) the actions go through, or None for Factory's
     delta-pose mapping; tensors: "numpy" | "torch"; run_config: the run configuration it was built from
-    (kept for the user to read: `envs.run_config`).
+    (kept for the user to read: `envs.run_config`); render_mode: None or "rgb_array" (`render()` returns
+    one task-camera frame per world, uint8 (H, W, 3), Table 5.6's camera: what gymnasium's vector
+    RecordVideo tiles into a video).
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+    # render_fps: the control rate (one frame per control step, 1/15 s)
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": list(RENDER_MODES),
+                "render_fps": int(round(1.0 / CONTROL_DT))}
 
-    def __init__(self, env, action_path=None, tensors: str = "numpy", run_config=None):
+    def __init__(self, env, action_path=None, tensors: str = "numpy", run_config=None, render_mode: str | None = None):
         if tensors not in TENSORS:
             raise ValueError(f"tensors={tensors!r} is not allowed; allowed: {list(TENSORS)}")
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise ValueError(f"render_mode={render_mode!r} is not allowed; allowed: None or one of {list(RENDER_MODES)}")
         if action_path is not None and action_path.env is not env:
             raise ValueError("the action path drives another env")
+        self.render_mode = render_mode
+        self._camera = None  # made on the first render()
         self.env = env
         self.action_path = action_path
         self.run_config = run_config
@@ -96,6 +105,7 @@ class AssemblyVectorEnv(VectorEnv):
 
     # -- the gymnasium contract ---------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self._check_open("reset")
         if seed is not None:
             if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**63:
                 raise ValueError(f"seed={seed!r}: one integer in [0, 2**63) seeds all {self.num_envs} worlds "
@@ -107,6 +117,7 @@ class AssemblyVectorEnv(VectorEnv):
         return self._out(obs), {}
 
     def step(self, actions):
+        self._check_open("step")
         a = torch.as_tensor(actions, dtype=torch.float32, device=self.env.tdev)
         if a.shape != (self.num_envs, self.single_action_space.shape[0]):
             raise ValueError(f"actions must have shape {(self.num_envs, self.single_action_space.shape[0])}, "
@@ -128,8 +139,73 @@ class AssemblyVectorEnv(VectorEnv):
         return (self._out(obs["policy"]), self._out(reward.float()), self._out(terminated), self._out(truncated),
                 info)
 
+    def render(self):
+        """One frame per world of the task camera (uint8 (H, W, 3) numpy arrays), or None without
+        render_mode="rgb_array"."""
+        self._check_open("render")
+        if self.render_mode != "rgb_array":
+            return None
+        if self._camera is None:
+            from ..sim.camera import TASK_CAMERAS, TaskCamera
+
+            self._camera = TaskCamera(self.env.model, TASK_CAMERAS[self.env.cfg.task], self.num_envs)
+        images = self._camera.render(self.env.state_0, *self.env.hand_pose())
+        return tuple(np.ascontiguousarray(images[i]) for i in range(self.num_envs))
+
     def close_extras(self, **kwargs) -> None:
         self.env = None
+        self._camera = None
+
+    def _check_open(self, what: str) -> None:
+        if self.closed:
+            raise gym.error.ClosedEnvironmentError(f"{what}() on a closed {type(self).__name__}: make a new one")
 
     def _out(self, t):
         return t if self.tensors == "torch" else t.detach().cpu().numpy()
+
+
+class AssemblySingleEnv(gym.Env):
+    """One world as a gymnasium `Env`: what `gymnasium.make(id)` gives, for the single-env checkers
+    (gymnasium's and stable-baselines3's `check_env`), wrappers and learners.
+
+    It is an `AssemblyVectorEnv` of one world underneath (the simulation is batched; for training,
+    `gymnasium.make_vec(id, num_envs=N)` simulates N worlds in one step at about the cost of one on a
+    GPU). At the time limit it returns the episode's last observation with truncated=True (the world
+    has already been reset inside; the next `reset()` starts a fresh episode), and in `info` whether
+    the part was seated ("success") and whether the world blew up ("physics_reset").
+    """
+
+    metadata = AssemblyVectorEnv.metadata
+
+    def __init__(self, vector_env: AssemblyVectorEnv):
+        if vector_env.num_envs != 1 or vector_env.tensors != "numpy":
+            raise ValueError("AssemblySingleEnv wraps a one-world AssemblyVectorEnv with tensors='numpy'")
+        self.vector_env = vector_env
+        self.observation_space = vector_env.single_observation_space
+        self.action_space = vector_env.single_action_space
+        self.render_mode = vector_env.render_mode
+        self.run_config = vector_env.run_config
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)  # seeds self.np_random, as gymnasium's contract asks
+        obs, info = self.vector_env.reset(seed=seed, options=options)
+        return obs[0], info
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float32)
+        if a.shape != self.action_space.shape:
+            raise ValueError(f"action must have shape {self.action_space.shape}, got {a.shape}")
+        obs, reward, terminated, truncated, info = self.vector_env.step(a[None])
+        out: dict = {}
+        if truncated[0]:  # the ended episode's last observation (the world is already reset inside)
+            obs = info["final_obs"]
+            out = {"success": bool(info["final_info"]["success"][0]),
+                   "physics_reset": bool(info["final_info"]["physics_reset"][0])}
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), out
+
+    def render(self):
+        frames = self.vector_env.render()
+        return None if frames is None else frames[0]
+
+    def close(self) -> None:
+        self.vector_env.close()

@@ -17,12 +17,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..envs.vector import AssemblyVectorEnv, check_vector_kwargs
-from .config import RunConfig
+from ..envs.vector import RENDER_MODES, AssemblySingleEnv, AssemblyVectorEnv, check_vector_kwargs
+from .config import ConfigError, RunConfig
 from .methods import METHODS
 from .presets import DEFAULT_KGRL_RECIPE, KGRL_RECIPES, NO_RECIPE
 
-__all__ = ["make_vec_env", "gym_config"]
+__all__ = ["make_vec_env", "make_env", "gym_config", "KWARGS"]
 
 
 def _quiet(message: str) -> None:
@@ -36,6 +36,11 @@ def gym_config(task: str = "PegInsert", family: str = "factory", action_dim: int
                demos: str | Path | None = None, preset: str | None = None, kgrl_recipe: str | None = None) -> RunConfig:
     """The RunConfig of an id's kwargs; ValueError naming the kwarg and the allowed values, before anything is built."""
     check_vector_kwargs(task, family, action_dim, num_envs, tensors, geometry)
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:
+        raise ValueError(f"seed={seed!r} is not allowed; allowed: an integer in [0, 2**32)")
+    for name, value in (("cache_dir", cache_dir), ("demos", demos), ("vae", vae)):
+        if value is not None and not isinstance(value, (str, Path)):
+            raise ValueError(f"{name}={value!r} is not allowed; allowed: a path (str or pathlib.Path)")
     if method not in METHODS or METHODS[method].uses_ppo:
         raise ValueError(f"method={method!r} is not allowed; allowed: "
                          f"{[m for m, row in METHODS.items() if not row.uses_ppo]} (an id is an env, not a learner)")
@@ -59,17 +64,47 @@ def gym_config(task: str = "PegInsert", family: str = "factory", action_dim: int
     preset = preset or ("thesis" if str(device).startswith("cuda") else "quick")
     recipe_name = (kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]) if row.takes_recipe else None
     recipe = KGRL_RECIPES[recipe_name] if recipe_name else NO_RECIPE
-    return RunConfig(task=task, method=method, env=family, action_dim=int(action_dim), seed=seed,
-                     num_envs=int(num_envs), preset=preset, geometry=geometry, kgrl_recipe=recipe_name,
-                     demos=Path(demos) if demos is not None else None, vae=Path(vae) if vae is not None else None,
-                     reach_floor_mm=float(recipe["reach_floor_mm"]), reach_floor_z_mm=float(recipe["reach_floor_z_mm"]),
-                     device=device, cache_dir=Path(cache_dir), progress=False)
+    cfg = RunConfig(task=task, method=method, env=family, action_dim=int(action_dim), seed=seed,
+                    num_envs=int(num_envs), preset=preset, geometry=geometry, kgrl_recipe=recipe_name,
+                    demos=Path(demos) if demos is not None else None, vae=Path(vae) if vae is not None else None,
+                    reach_floor_mm=float(recipe["reach_floor_mm"]), reach_floor_z_mm=float(recipe["reach_floor_z_mm"]),
+                    device=device, cache_dir=Path(cache_dir), progress=False)
+    _check_files(cfg)
+    return cfg
+
+
+def _check_files(cfg: RunConfig) -> None:
+    """A given demos or vae file that is missing, damaged or of another task: one line, before any build."""
+    from .resolve import check_demos_file, check_vae_file
+
+    try:
+        if cfg.demos is not None:
+            check_demos_file(cfg.demos, cfg.task)
+        if cfg.vae is not None:
+            check_vae_file(cfg.vae, cfg.task)
+    except ConfigError as e:
+        raise ValueError(str(e).replace("--demos ", "demos=").replace("--demos:", "demos:").replace("--vae:", "vae:")
+                         .replace("--task ", "task=")) from None
+
+
+KWARGS = ("num_envs", "device", "seed", "cache_dir", "tensors", "geometry", "vae", "demos", "preset", "kgrl_recipe",
+          "render_mode")  # what make_vec and make take beyond an id's own spec kwargs
+
+
+def _check_kwargs(given: dict) -> None:
+    if unknown := sorted(set(given) - set(KWARGS)):
+        raise ValueError(f"{unknown[0]}={given[unknown[0]]!r} is not a kwarg of the VKGRL ids; allowed: {list(KWARGS)}")
 
 
 def make_vec_env(task: str = "PegInsert", family: str = "factory", action_dim: int = 4, method: str = "sac",
-                 num_envs: int = 16, tensors: str = "numpy", env=None, **kwargs) -> AssemblyVectorEnv:
-    """gymnasium.make_vec's entry point for the VKGRL ids (kwargs: gym_config's). env: an AssemblyEnv
-    already built for this configuration (tests share one); else it is built here."""
+                 num_envs: int = 16, tensors: str = "numpy", env=None, render_mode: str | None = None,
+                 **kwargs) -> AssemblyVectorEnv:
+    """gymnasium.make_vec's entry point for the VKGRL ids (kwargs: gym_config's, and render_mode None or
+    "rgb_array"). env: an AssemblyEnv already built for this configuration (tests share one); else it is
+    built here."""
+    _check_kwargs({**kwargs, "num_envs": num_envs, "tensors": tensors, "render_mode": render_mode})
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode={render_mode!r} is not allowed; allowed: None or one of {list(RENDER_MODES)}")
     cfg = gym_config(task, family, action_dim, method, num_envs=num_envs, tensors=tensors, **kwargs)
     from .build import build_action_path, build_encoder, build_env
 
@@ -81,4 +116,16 @@ def make_vec_env(task: str = "PegInsert", family: str = "factory", action_dim: i
             raise ValueError(f"env is a {got[0]} {got[1]} {got[2]}D env with a {got[3]}-dimensional vision slot, "
                              f"not {task} {family} {action_dim}D with {cfg.latent_dim}")
     action_path, _ = build_action_path(cfg, env, log=_quiet)
-    return AssemblyVectorEnv(env, action_path, tensors=tensors, run_config=cfg)
+    return AssemblyVectorEnv(env, action_path, tensors=tensors, run_config=cfg, render_mode=render_mode)
+
+
+def make_env(task: str = "PegInsert", family: str = "factory", action_dim: int = 4, method: str = "sac",
+             render_mode: str | None = None, **kwargs) -> AssemblySingleEnv:
+    """gymnasium.make's entry point: one world (envs.vector.AssemblySingleEnv; kwargs as make_vec_env's
+    but num_envs, which is 1, and tensors, which is numpy)."""
+    for name in ("num_envs", "tensors"):
+        if name in kwargs:
+            raise ValueError(f"{name} is not a kwarg of gymnasium.make's one-world env; use gymnasium.make_vec(id, "
+                             f"num_envs=N) for N worlds in one batched simulation")
+    return AssemblySingleEnv(make_vec_env(task, family, action_dim, method, num_envs=1, tensors="numpy",
+                                          render_mode=render_mode, **kwargs))

@@ -22,7 +22,7 @@ from .config import (RUN_FILES, ConfigError, RunConfig, check_scalars, default_r
 from .methods import METHODS, names
 from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, PPO_RUNNER_ONLY, RUN_DEFAULTS
 
-__all__ = ["resolve", "Resolved", "Done", "without_file_records"]
+__all__ = ["resolve", "Resolved", "Done", "without_file_records", "check_demos_file", "check_vae_file"]
 
 _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first checkpoint (no checkpoints/last.pt): "
                   "nothing to resume; choose another directory, or delete this one to start it again")
@@ -221,14 +221,30 @@ def _check_sac_options(ns, provisional: str):
 
 def _check_given_demos(ns) -> None:
     if ns.demos is not None and not ns.resume:  # a missing, damaged or foreign file stops here
-        from ..kmp.demos import DemoSet
+        check_demos_file(ns.demos, ns.task)
 
-        try:
-            demo_task = DemoSet.load(ns.demos).task
-        except (FileNotFoundError, ValueError) as e:
-            raise ConfigError(f"--demos: {e}") from None
-        if demo_task != ns.task:
-            raise ConfigError(f"--demos {ns.demos}: demonstrations of {demo_task}, not --task {ns.task}")
+
+def check_demos_file(path, task: str) -> None:
+    """A demonstration file that is missing, damaged or of another task: ConfigError."""
+    from ..kmp.demos import DemoSet
+
+    try:
+        demo_task = DemoSet.load(path).task
+    except (FileNotFoundError, ValueError) as e:
+        raise ConfigError(f"--demos: {e}") from None
+    if demo_task != task:
+        raise ConfigError(f"--demos {path}: demonstrations of {demo_task}, not --task {task}")
+
+
+def check_vae_file(path, task: str) -> None:
+    """A vae.pt that is missing, of another task, damaged or not a VAE: ConfigError."""
+    from ..tasks import VISION_LATENT_DIM
+    from ..vision.vae import load_vae
+
+    try:
+        load_vae(path, expect={"task": task, "latent_dim": VISION_LATENT_DIM})
+    except (FileNotFoundError, ValueError) as e:
+        raise ConfigError(f"--vae: {e}") from None
 
 
 def _apply_device_and_defaults(ns, provisional: str, checked) -> None:
@@ -288,14 +304,8 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
 
 
 def _check_given_vae(config: RunConfig) -> None:
-    if config.vae is not None:
-        from ..tasks import VISION_LATENT_DIM
-        from ..vision.vae import load_vae
-
-        try:  # missing, the wrong task, damaged or not a VAE at all: stop before anything is built
-            load_vae(config.vae, expect={"task": config.task, "latent_dim": VISION_LATENT_DIM})
-        except (FileNotFoundError, ValueError) as e:
-            raise ConfigError(f"--vae: {e}") from None
+    if config.vae is not None:  # missing, the wrong task, damaged or not a VAE at all: stop before anything is built
+        check_vae_file(config.vae, config.task)
 
 
 def without_file_records(meta: dict) -> dict:
