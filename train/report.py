@@ -167,13 +167,25 @@ def _plain(value):
     return list(value) if isinstance(value, tuple) else value  # as JSON holds it
 
 
+def _read_json(path: Path) -> dict:
+    """A run's config.json or metrics.json; a damaged one (not JSON, not an object) is a MixedCellError
+    naming the file: the report refuses rather than leave a run out unseen."""
+    try:
+        value = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise MixedCellError(f"{path} is damaged ({type(e).__name__}: {e}); restore it or move its run directory "
+                             "out of the report's paths") from None
+    if not isinstance(value, dict):
+        raise MixedCellError(f"{path} is not a run's JSON object; restore it or move its run directory away")
+    return value
+
+
 def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
     """{(task, env, D, method): [{"run_dir", "seed", metric: value}]}; MixedCellError on a mixed cell."""
     cells: dict[tuple, list[dict]] = defaultdict(list)
     identities: dict[tuple, tuple[Path, dict]] = {}
     for d in run_dirs:
-        config = json.loads((d / "config.json").read_text())
-        metrics = json.loads((d / "metrics.json").read_text())
+        config, metrics = _read_json(d / "config.json"), _read_json(d / "metrics.json")
         key = cell_key(config)
         ident = identity(config)
         if key in identities:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import pickle
 import tempfile
 import zipfile
 import zlib
@@ -144,7 +143,7 @@ def load_checkpoint(path, map_location="cpu", required: Sequence[str] = (),
         raise FileNotFoundError(f"checkpoint {path} does not exist")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as e:
+    except Exception as e:  # any other kind of file breaks torch's unpickler in its own way (KeyError, IndexError, ...)
         first = (str(e).strip().splitlines() or [""])[0][:200]
         raise ValueError(f"checkpoint {path} is damaged or not a checkpoint ({type(e).__name__}: {first}); "
                          f"{hint}") from None

@@ -12,6 +12,7 @@ from ..cache import check_run_files
 from ..results.paired import seed_evaluation
 from ..tasks import geometry_error
 from .config import ConfigError, RunConfig
+from .methods import METHODS
 
 __all__ = ["POLICIES", "KMP_POLICIES", "checkpoint_config", "evaluation_config", "make_policy", "evaluate_policy"]
 
@@ -56,6 +57,10 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
         raise ConfigError(f"--{geometry_error(args.task, args.geometry)}")
     meta = payload["meta"] if payload is not None else {}
     method = meta.get("method") or ("kgrl" if args.policy in KMP_POLICIES else "sac")
+    if args.demos is not None and METHODS[method].uses_kmp:  # missing, damaged or another task's: one line
+        from .resolve import check_demos_file
+
+        check_demos_file(args.demos, args.task)
     prior = meta.get("prior", {})
     return RunConfig(task=args.task, method=method, env=args.env, action_dim=args.action_dim, seed=args.seed,
                      num_envs=args.num_envs, preset=meta.get("preset", "quick"), time_obs=not args.no_time_obs,

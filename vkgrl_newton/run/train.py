@@ -73,8 +73,13 @@ def _build(cfg: RunConfig, log) -> Built | int:
     except KeyboardInterrupt as e:
         log("interrupted while preparing the image set or the VAE; run again to continue")
         return exit_code(e)
-    env = build_env(cfg, encoder)
-    action_path, demos_path = build_action_path(cfg, env, log)
+    try:
+        env = build_env(cfg, encoder)
+        action_path, demos_path = build_action_path(cfg, env, log)
+    except KeyboardInterrupt as e:  # (recording the demonstrations, fitting the prior: cached atomically)
+        print(f"train/run.py: {describe(e)} while preparing the KMP prior (the demonstrations and tables are "
+              "written whole or not at all); run again to continue", file=sys.stderr)
+        return exit_code(e)
     return Built(encoder, env, action_path, build_agent(cfg, env), demos_path)
 
 
