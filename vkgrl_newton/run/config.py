@@ -14,7 +14,7 @@ import dataclasses
 import math
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..agents.sac_config import SAC_PRESETS, SACConfig, make_sac_config
@@ -78,7 +78,6 @@ class RunConfig:
     overlap: bool | None = None  # None: on for a CPU device
     eager_physics: bool = False
     verbose: bool = False
-    extra: dict = field(default_factory=dict, compare=False, repr=False)  # (unused; room for a tool's notes)
 
     @property
     def method_row(self) -> Method:
