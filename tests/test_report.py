@@ -179,7 +179,8 @@ def test_prior_gain_table_from_paired_runs(report_py, tmp_path):
         rounds = lambda v: [{"world_success": v[:2]}, {"world_success": v[2:]}]  # noqa: E731
         gain = float(np.mean(outcome) - np.mean(prior))
         m.update(per_episode=rounds(outcome), prior_eval={"success_rate": 0.25, "per_episode": rounds(prior)},
-                 paired_gain={"success_rate": {"mean": gain, "ci_low": gain, "ci_high": gain, "n_pairs": 4}})
+                 paired_gain={"success_rate": {"mean": gain, "ci_low": gain, "ci_high": gain, "n_pairs": 4}},
+                 training={"wall_s": 900.0 + 60 * seed}, wall_s=300.0)  # trials of 20, 21 and 22 min
         (d / "metrics.json").write_text(json.dumps(m))
         (d / "curves.jsonl").unlink()
         curves = CurveWriter(d)
@@ -200,6 +201,17 @@ def test_prior_gain_table_from_paired_runs(report_py, tmp_path):
     assert row["training_early"] == pytest.approx(0.5) and row["training_late"] == pytest.approx(1 / 3)
     text = (out / "prior_gain.md").read_text()
     assert "| kgrl+lab | 3 |" in text and "+0.250" in text
+    # beside the bootstrap: the t-interval over the 3 seeds (t(0.975, 2) = 4.302653 from a table), the sign
+    # and Wilcoxon tests, the verdict, and the seeds the rule asks (trials of <= 30 min: 10)
+    s = row["seed_stats"]
+    half = 4.302653 * np.std([0.25, 0.0, 0.5], ddof=1) / math.sqrt(3)
+    assert (s["t_low"], s["t_high"]) == pytest.approx((0.25 - half, 0.25 + half), abs=1e-6)
+    assert (s["sign_positive"], s["sign_negative"], s["sign_zeros"]) == (2, 0, 1) and s["sign_p"] == pytest.approx(0.5)
+    assert s["verdict"] == "not established" and (s["ci_low"], s["ci_high"]) == (
+        row["gain_over_seeds"]["ci_low"], row["gain_over_seeds"]["ci_high"])
+    assert row["seed_ids"] == [0, 1, 2] and row["trial_minutes"] == 21.0 and row["seeds_needed"] == 10
+    assert f"| [{0.25 - half:+.3f}, {0.25 + half:+.3f}] | sign 2+/0- p 0.5; Wilcoxon p 0.5 | not established |" in text
+    assert "| 10 (21 min): 7 short |" in text
 
 
 def test_method_pairs_difference_methods_on_the_same_episodes(report_py, tmp_path):
@@ -242,7 +254,15 @@ def test_method_pairs_difference_methods_on_the_same_episodes(report_py, tmp_pat
     assert (row["pooled"]["a_mean"], row["pooled"]["b_mean"]) == pytest.approx((1 / 7, 5 / 7))
     assert "a_mean" not in row["over_seeds"] and "b_mean" not in row["over_seeds"]
     assert (row["a_success"], row["b_success"]) == pytest.approx(((1 / 3 + 0) / 2, (2 / 3 + 0.75) / 2))
-    assert "| sac+a | sac+b | 2 | 0.167 | 0.708 | +0.542 [" in (out / "method_pairs.md").read_text()
+    text = (out / "method_pairs.md").read_text()
+    assert "| sac+a | sac+b | 2 | 0.167 | 0.708 | +0.542 [" in text
+    # two seeds: t(0.975, 1) = 12.706205 (a table's), so wide that B's lead is not established
+    s = row["seed_stats"]
+    half = 12.706205 * np.std([1 / 3, 0.75], ddof=1) / math.sqrt(2)
+    assert (s["t_low"], s["t_high"]) == pytest.approx(((1 / 3 + 0.75) / 2 - half, (1 / 3 + 0.75) / 2 + half), abs=1e-6)
+    assert s["sign_p"] == pytest.approx(0.5) and s["verdict"] == "not established"
+    assert "| sign 2+/0- p 0.5; Wilcoxon p 0.5 | not established |" in text and "beats" not in text.split("|---|")[-1]
+    assert row["seeds_needed"] is None and "? (trial time not recorded)" in text  # these runs recorded none
 
 
 def test_report_refuses_bad_reps_before_writing(report_py, runs, tmp_path, capsys):

@@ -19,20 +19,34 @@ empty directory; nothing is overwritten):
   results.csv            one row per metric and cell: ours (n, mean, std), the thesis's, difference
   stats.json, stats.png  rliable (Agarwal et al. 2021): the IQM of the final success rate over
                          the configurations each method ran, with 95 % stratified-bootstrap
-                         intervals; the probability that kgrl beats sac and that vision_kgrl
-                         beats kgrl, over their shared configurations, with intervals
+                         intervals; the probabilities of improvement P(kgrl > sac) and
+                         P(vision_kgrl > kgrl) over their shared configurations, with intervals
   prior_gain.md          KGRL runs against their prior on the same evaluation episodes: success,
                          the prior's, the paired gain with 95 % bootstrap intervals over seeds and
                          over pooled episodes, training success early (5k-10k) and late (last 5k)
   method_pairs.md        each two methods (variants included) of a task, env and D against each
                          other on the same evaluation episodes: B minus A per seed both ran with one
                          eval seed, its mean with a 95 % bootstrap interval over seeds, and pooled
+
+Wherever a gain over seeds is reported (prior_gain.md, method_pairs.md and their rows in stats.json,
+key seed_stats: vkgrl_newton/results/seeds.py), beside the percentile bootstrap: the 95 % Student-t
+interval over seeds, the exact sign test and the Wilcoxon signed-rank test, and the verdict: "beats"
+only where the t-interval lies above 0 ("loses" below), else "not established"; with the seeds the
+rule asks of a headline claim (10 where a trial, training and evaluation as they ran, costs <= 30 min,
+else 5: trial_minutes, seeds_needed).
   curves_<task>_<env>_<D>d.png  learning curves, methods overlaid, mean +- std over seeds
                          (vkgrl_newton/results/plots.py, as train/plot_runs.py)
   runs/                  a copy of each run read (config.json, metrics.json, curves.jsonl) in
                          runs/<parent>/<run>/: give the report's directory to report.py to read
                          them again, alone or merged with later runs, once the run directories are
                          gone (a run found both as itself and as a copy counts once)
+
+--from-stats: the paths are earlier reports whose runs are gone (no runs/ to read again). Their
+stats.json's per-seed values (prior_gain seed_gains, method_pairs seed_differences, and the
+difference of two gain rows over the same prior) get the statistics above, in seed_stats.md and
+seed_stats.json under --out:
+
+    python train/report.py --from-stats docs/results/kgrl_reach_28c/report --out runs/reports/restat
 
 The metrics are each run's metrics.json: the deterministic evaluation of its final policy
 (train/evaluate.py's keys). The thesis's values are Tables 6.1-6.4 of the spec as transcribed
@@ -64,6 +78,7 @@ from vkgrl_newton.agents.sac_config import SACConfig  # noqa: E402
 from vkgrl_newton.results.curves import CURVES_FILE, read_curves  # noqa: E402
 from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E402
 from vkgrl_newton.results.plots import plot  # noqa: E402
+from vkgrl_newton.results.seeds import format_t, format_tests, over_seeds, seeds_needed  # noqa: E402
 from vkgrl_newton.results.thesis import METRICS, THESIS_METHOD_NAMES, load_thesis_tables  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.run.methods import RUN_METHODS  # noqa: E402
@@ -202,7 +217,8 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
         if twin is not None:
             raise MixedCellError(f"configuration {'/'.join(map(str, key))}: two runs of seed {config['seed']} "
                                  f"({twin} and {d}); keep one, or give them different --label")
-        row = {"run_dir": str(d), "seed": config["seed"], "total_steps": config.get("total_steps")}
+        row = {"run_dir": str(d), "seed": config["seed"], "total_steps": config.get("total_steps"),
+               "trial_s": _trial_seconds(metrics)}
         for m in METRICS:
             v = metrics.get(m)
             row[m] = math.nan if v is None else float(v)
@@ -219,7 +235,27 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
     return dict(cells)
 
 
+def _trial_seconds(metrics: dict) -> float:
+    """A trial's wall time as it ran: training plus the final evaluation (NaN where not recorded)."""
+    training = (metrics.get("training") or {}).get("wall_s")
+    if training is None or metrics.get("wall_s") is None:
+        return math.nan
+    return float(training) + float(metrics["wall_s"])
+
+
 # ----------------------------------------------------------------------------- statistics
+def trial_minutes(*cells: list[dict]) -> float | None:
+    """The median trial wall time, in minutes, of the costlier of the given cells' runs (None if unrecorded):
+    what decides how many seeds a claim over them needs (results.seeds.seeds_needed)."""
+    medians = [np.nanmedian(t) for t in ([r["trial_s"] for r in rows] for rows in cells)
+               if t and not np.all(np.isnan(t))]
+    return round(float(max(medians)) / 60.0, 1) if medians else None
+
+
+def seed_rule(minutes: float | None) -> dict:
+    return {"trial_minutes": minutes, "seeds_needed": seeds_needed(minutes)}
+
+
 def cell_stats(rows: list[dict], metric: str) -> tuple[int, float, float]:
     """(n, mean, std) over the seeds; time to first success over the seeds that succeeded."""
     values = np.array([r[metric] for r in rows], dtype=np.float64)
@@ -355,6 +391,7 @@ def prior_gain_rows(cells: dict, reps: int) -> list[dict]:
             late.append(np.nanmean([c["success_rate"] for c in curve if c["transitions"] > end - 5000] or [np.nan]))
         rows.append({
             "task": key[0], "env": key[1], "action_dim": key[2], "method": key[3], "seeds": len(runs),
+            "seed_ids": [r["seed"] for r in runs],
             "success": float(np.mean([r["success_rate"] for r in runs])),
             "prior_success": float(np.nanmean([math.nan if r["paired"]["prior_success"] is None
                                                else r["paired"]["prior_success"] for r in runs])),
@@ -366,6 +403,9 @@ def prior_gain_rows(cells: dict, reps: int) -> list[dict]:
                                        np.concatenate([r["paired"]["prior"] for r in runs]), reps=reps, seed=0),
             "training_early": float(np.nanmean(early)) if early else None,
             "training_late": float(np.nanmean(late)) if late else None,
+            # the bootstrap above is too narrow over few seeds: a t-interval, sign and Wilcoxon tests beside it
+            "seed_stats": over_seeds(gains, reps=reps, seed=0),
+            **seed_rule(trial_minutes(runs)),
         })
     return rows
 
@@ -379,6 +419,29 @@ def ci(g: dict) -> str:
     return f"{g['mean']:+.3f} [{g['ci_low']:+.3f}, {g['ci_high']:+.3f}]"
 
 
+def verdict(s: dict) -> str:
+    """The over-seeds verdict of results.seeds.over_seeds (the t-interval's bounds against 0), bold when it
+    claims something."""
+    return f"**{s['verdict']}**" if s["verdict"] in ("beats", "loses") else s["verdict"]
+
+
+def seeds_rule_cell(seeds: int, row: dict) -> str:
+    """'10 (17 min): 7 short', from the rule of results.seeds.seeds_needed; '?' where trial times are unrecorded."""
+    needed, minutes = row.get("seeds_needed"), row.get("trial_minutes")
+    if needed is None:
+        return "? (trial time not recorded)"
+    return f"{needed} ({minutes:.0f} min): " + (f"{needed - seeds} short" if seeds < needed else "met")
+
+
+SEED_STATS_NOTE = (
+    "Over seeds, beside the percentile bootstrap (too narrow with few seeds: it never reaches past the seeds' "
+    "own range): the 95 % Student-t interval of the mean, mean ± t(0.975, n-1) sd / sqrt(n); the exact two-sided "
+    "sign test (positive against negative seeds, zeros dropped) and the Wilcoxon signed-rank test (exact "
+    "enumeration). Verdict: **beats** only where the t-interval lies above 0, **loses** where below, else not "
+    "established (one seed or seeds all equal: no t-interval). Seeds needed: 10 where a trial (training and "
+    "final evaluation, wall time as it ran) costs <= 30 min, else 5 (issue 40's rule for a headline claim).")
+
+
 def prior_gain_markdown(rows: list[dict]) -> str:
     def num(v):
         return DASH if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
@@ -388,14 +451,18 @@ def prior_gain_markdown(rows: list[dict]) -> str:
            "--eval-seed). Gain: policy minus prior success, per seed; mean over seeds with a 95 % percentile "
            "bootstrap interval over seeds, and over all seeds' episodes pooled. Training success: the mean over "
            "seeds of the training episodes' success over transitions (5k, 10k] and over the last 5k.", "",
-           "| Task | Env | D | Method | Seeds | Success | Prior (same episodes) | Gain over seeds [95 % CI] | "
-           "Gain, episodes pooled [95 % CI] | Training success 5k-10k | last 5k |",
-           "|---|---|---|---|---|---|---|---|---|---|---|"]
+           SEED_STATS_NOTE, "",
+           "| Task | Env | D | Method | Seeds | Success | Prior (same episodes) | Gain over seeds [95 % bootstrap] | "
+           "t-interval [95 %] | Sign test, Wilcoxon | Verdict | "
+           "Gain, episodes pooled [95 % CI] | Training success 5k-10k | last 5k | Seeds needed |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        s = r["seed_stats"]
         out.append(f"| {r['task']} | {r['env']} | {r['action_dim']} | {r['method']} | {r['seeds']} | "
                    f"{num(r['success'])} | {num(r['prior_success'])} | {ci(r['gain_over_seeds'])} | "
+                   f"{format_t(s)} | {format_tests(s)} | {verdict(s)} | "
                    f"{ci(r['gain_pooled'])} ({r['gain_pooled']['n_pairs']}) | {num(r['training_early'])} | "
-                   f"{num(r['training_late'])} |")
+                   f"{num(r['training_late'])} | {seeds_rule_cell(r['seeds'], r)} |")
     return "\n".join(out) + "\n"
 
 
@@ -436,6 +503,8 @@ def method_pair_rows(cells: dict, reps: int) -> list[dict]:
                     "pooled": _a_and_b(paired_gain(np.concatenate([b["outcomes"] for _, b in pairs]),
                                                    np.concatenate([a["outcomes"] for a, _ in pairs]),
                                                    reps=reps, seed=0)),
+                    "seed_stats": over_seeds(diffs, reps=reps, seed=0),
+                    **seed_rule(trial_minutes(cells[key_a], cells[key_b])),
                 })
     return rows
 
@@ -454,15 +523,20 @@ def method_pairs_markdown(rows: list[dict]) -> str:
     out = ["# Methods against each other on the same episodes (train/report.py)", "",
            "B minus A in final success, over the seeds both ran with one evaluation seed (run.py --eval-seed): "
            "the mean of the seeds' differences with a 95 % percentile-bootstrap interval over seeds, and over all "
-           "those seeds' episodes pooled.", "",
-           "| Task | Env | D | A | B | Seeds | A success | B success | B - A over seeds [95 % CI] | "
-           "B - A, episodes pooled [95 % CI] | Per seed |",
-           "|---|---|---|---|---|---|---|---|---|---|---|"]
+           "those seeds' episodes pooled. Verdict: whether B beats A.", "",
+           SEED_STATS_NOTE, "",
+           "| Task | Env | D | A | B | Seeds | A success | B success | B - A over seeds [95 % bootstrap] | "
+           "t-interval [95 %] | Sign test, Wilcoxon | Verdict (B against A) | "
+           "B - A, episodes pooled [95 % CI] | Per seed | Seeds needed |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         per_seed = ", ".join(f"{d:+.3f}" for d in r["seed_differences"])
+        s = r["seed_stats"]
         out.append(f"| {r['task']} | {r['env']} | {r['action_dim']} | {r['a']} | {r['b']} | {len(r['seeds'])} | "
                    f"{r['a_success']:.3f} | {r['b_success']:.3f} | {ci(r['over_seeds'])} | "
-                   f"{ci(r['pooled'])} ({r['pooled']['n_pairs']}) | {per_seed} |")
+                   f"{format_t(s)} | {format_tests(s)} | {verdict(s)} | "
+                   f"{ci(r['pooled'])} ({r['pooled']['n_pairs']}) | {per_seed} | "
+                   f"{seeds_rule_cell(len(r['seeds']), r)} |")
     return "\n".join(out) + "\n"
 
 
@@ -534,6 +608,107 @@ def stats_figure(stats: dict) -> bytes:
     return buf.getvalue()
 
 
+# ----------------------------------------------------------------------------- older reports (--from-stats)
+def _base_order(method: str) -> tuple:
+    base = method.split("+")[0]
+    return (METHOD_ORDER.index(base) if base in METHOD_ORDER else len(METHOD_ORDER)), method
+
+
+def restat_rows(reports: list[Path], reps: int) -> list[dict]:
+    """The over-seeds statistics of the per-seed values that earlier reports' stats.json hold, for reports
+    whose runs are gone (no runs/ copies to read again): each prior_gain row's seed_gains, each
+    method_pairs row's seed_differences, and B minus A for each two prior_gain rows of one task, env and D
+    with the same prior success (one eval seed, a deterministic prior: the prior's outcome is the same
+    episode by episode, so gain_B - gain_A per seed is B's success minus A's). Rows are paired by seed id,
+    or where a report predates seed ids, in run order when both have as many seeds ("run order" in the row).
+    A row found in several reports (same values) counts once, with all its reports named."""
+    entries: list[dict] = []
+
+    def add(entry: dict) -> None:
+        same = next((e for e in entries if all(e[k] == entry[k] for k in
+                                               ("kind", "task", "env", "action_dim", "name", "values", "prior"))), None)
+        if same is None:
+            entries.append(entry)
+        elif entry["reports"][0] not in same["reports"]:
+            same["reports"].append(entry["reports"][0])
+
+    for report in reports:
+        path = Path(report) / "stats.json" if Path(report).is_dir() else Path(report)
+        if not path.exists():
+            raise FileNotFoundError(f"{path} does not exist (--from-stats reads reports' stats.json)")
+        stats = _read_json(path)
+        name = str(path.parent)
+        for r in stats.get("prior_gain", []):
+            add({"kind": "gain over the prior", "task": r["task"], "env": r["env"], "action_dim": r["action_dim"],
+                 "name": r["method"], "method": r["method"], "values": r["seed_gains"], "seeds": r.get("seed_ids"),
+                 "prior": r.get("prior_success"), "reports": [name]})
+        for r in stats.get("method_pairs", []):
+            add({"kind": "B - A", "task": r["task"], "env": r["env"], "action_dim": r["action_dim"],
+                 "name": f"{r['b']} - {r['a']}", "values": r["seed_differences"], "seeds": r.get("seeds"),
+                 "prior": None, "reports": [name]})
+    gains = sorted((e for e in entries if e["kind"] == "gain over the prior"),
+                   key=lambda e: (e["task"], e["env"], e["action_dim"], _base_order(e["method"])))
+    for i, a in enumerate(gains):
+        for b in gains[i + 1:]:
+            if (a["task"], a["env"], a["action_dim"]) != (b["task"], b["env"], b["action_dim"]) or \
+                    a["prior"] is None or a["prior"] != b["prior"] or a["method"] == b["method"]:
+                continue
+            if a["seeds"] is not None and b["seeds"] is not None:
+                shared = sorted(set(a["seeds"]) & set(b["seeds"]))
+                va, vb = dict(zip(a["seeds"], a["values"])), dict(zip(b["seeds"], b["values"]))
+                values, seeds, how = [vb[k] - va[k] for k in shared], shared, "seed id"
+            elif len(a["values"]) == len(b["values"]):
+                values, seeds, how = [y - x for x, y in zip(a["values"], b["values"])], None, "run order"
+            else:
+                continue
+            if values:
+                entries.append({"kind": "B - A (gains' difference)", "task": a["task"], "env": a["env"],
+                                "action_dim": a["action_dim"], "name": f"{b['method']} - {a['method']}",
+                                "values": values, "seeds": seeds, "prior": a["prior"], "paired_by": how,
+                                "reports": sorted(set(a["reports"]) | set(b["reports"]))})
+    for e in entries:
+        e["seed_stats"] = over_seeds(e["values"], reps=reps, seed=0)
+    return entries
+
+
+def restat_markdown(rows: list[dict], reports: list[Path]) -> str:
+    out = ["# Over-seeds statistics of earlier reports (train/report.py --from-stats)", "",
+           "Read from the per-seed values in the stats.json of: " + ", ".join(str(r) for r in reports) +
+           " (their runs are gone; nothing was rerun). Gain over the prior: policy minus prior success per seed "
+           "on the same episodes. B - A: a report's method pair, or two gain rows' difference per seed "
+           "(the prior's outcome is the same in both; paired by seed id, or in run order where the report predates "
+           "seed ids). Trial times are not in stats.json: the seeds a claim needs are not judged here.", "",
+           SEED_STATS_NOTE.split(" Seeds needed:")[0], "",
+           "| Task | Env | D | Comparison | Seeds | Per seed | Mean | Bootstrap over seeds [95 %] | t-interval [95 %] | "
+           "Sign test, Wilcoxon | Verdict | Reports |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        s = r["seed_stats"]
+        per_seed = ", ".join(f"{v:+.3f}" for v in r["values"])
+        boot = DASH if s["ci_low"] is None else f"[{s['ci_low']:+.3f}, {s['ci_high']:+.3f}]"
+        mean = DASH if s["mean"] is None else f"{s['mean']:+.3f}"
+        what = {"gain over the prior": f"{r['name']} over its prior ({r['prior']:.3f})" if r["prior"] is not None
+                else f"{r['name']} over its prior"}.get(r["kind"], f"{r['name']}" + (
+                    f" (gains' difference, by {r['paired_by']})" if "paired_by" in r else ""))
+        out.append(f"| {r['task']} | {r['env']} | {r['action_dim']} | {what} | {s['n_seeds']} | {per_seed} | {mean} | "
+                   f"{boot} | {format_t(s)} | {format_tests(s)} | {verdict(s)} | {', '.join(r['reports'])} |")
+    return "\n".join(out) + "\n"
+
+
+def write_restat(reports: list[Path], out: Path, reps: int = 2000) -> dict:
+    """seed_stats.md and seed_stats.json in `out` (new or empty, all or nothing) from earlier reports' stats.json."""
+    rows = restat_rows(reports, reps)
+    if not rows:
+        raise FileNotFoundError(f"no prior_gain or method_pairs rows in {', '.join(map(str, reports))}")
+
+    def write(staging: Path) -> dict:
+        atomic_write_text(staging / "seed_stats.md", restat_markdown(rows, reports))
+        atomic_write_text(staging / "seed_stats.json", strict_json({"reps": reps, "rows": rows}, indent=2))
+        return {"rows": len(rows)}
+
+    return _staged(out, write)
+
+
 # ----------------------------------------------------------------------------- main
 def write_report(paths: list[Path], out: Path, reps: int = 2000) -> dict:
     """The report of the runs under `paths` in the directory `out` (new or empty), all or nothing:
@@ -544,10 +719,15 @@ def write_report(paths: list[Path], out: Path, reps: int = 2000) -> dict:
         raise FileNotFoundError(f"no finished runs (config.json and metrics.json) under {', '.join(map(str, paths))}")
     cells = load_cells(run_dirs)
     thesis = load_thesis_tables()
+    return _staged(out, lambda staging: _write_report_files(run_dirs, cells, thesis, staging, reps))
+
+
+def _staged(out: Path, write) -> dict:
+    """write(staging) into a hidden directory beside `out`, renamed to `out` when done, removed on failure."""
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
-        summary = _write_report_files(run_dirs, cells, thesis, staging, reps)
+        summary = write(staging)
         if out.exists():
             out.rmdir()  # empty (checked by main): only an empty directory is replaced
         os.chmod(staging, 0o777 & ~current_umask())  # mkdtemp's 0700 -> what mkdir would have made
@@ -596,6 +776,10 @@ def main(argv=None) -> int:
     ap.add_argument("paths", type=Path, nargs="+", help="run directories or sweep directories")
     ap.add_argument("--out", type=Path, required=True, help="the report's directory (new or empty)")
     ap.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (rliable)")
+    ap.add_argument("--from-stats", action="store_true",
+                    help="the paths are earlier reports whose runs are gone: read the per-seed values in their "
+                         "stats.json and write seed_stats.md and seed_stats.json (t-interval, sign and Wilcoxon "
+                         "tests, verdict) to --out")
     args = ap.parse_args(argv)
     if args.reps < 1:
         ap.error(f"--reps {args.reps}: must be >= 1 (bootstrap resamples)")
@@ -603,6 +787,13 @@ def main(argv=None) -> int:
         ap.error(f"--out {args.out} is a file; give a new or empty directory")
     if args.out.exists() and any(args.out.iterdir()):
         ap.error(f"--out {args.out} is not empty; choose another directory (reports are never overwritten)")
+    if args.from_stats:
+        try:
+            summary = write_restat(args.paths, args.out, reps=args.reps)
+        except (FileNotFoundError, MixedCellError, KeyError) as e:
+            ap.error(f"--from-stats: {e}")
+        print(f"train/report.py --from-stats: {summary['rows']} rows -> {args.out}")
+        return 0
     try:
         summary = write_report(args.paths, args.out, reps=args.reps)
     except (FileNotFoundError, MixedCellError) as e:
