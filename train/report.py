@@ -661,9 +661,13 @@ def restat_rows(reports: list[Path], reps: int) -> list[dict]:
                 values, seeds, how = [y - x for x, y in zip(a["values"], b["values"])], None, "run order"
             else:
                 continue
+            name = f"{b['method']} - {a['method']}"
+            if any(e["kind"] == "B - A" and e["name"] == name and (e["task"], e["env"], e["action_dim"]) ==
+                   (a["task"], a["env"], a["action_dim"]) for e in entries):
+                continue  # a report paired them itself, episode by episode
             if values:
                 entries.append({"kind": "B - A (gains' difference)", "task": a["task"], "env": a["env"],
-                                "action_dim": a["action_dim"], "name": f"{b['method']} - {a['method']}",
+                                "action_dim": a["action_dim"], "name": name,
                                 "values": values, "seeds": seeds, "prior": a["prior"], "paired_by": how,
                                 "reports": sorted(set(a["reports"]) | set(b["reports"]))})
     for e in entries:
