@@ -51,7 +51,7 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vkgrl_newton._io import atomic_write_text  # noqa: E402
+from vkgrl_newton._io import atomic_write_text, one_line, read_json_object  # noqa: E402
 from vkgrl_newton.cli_types import stderr_without  # noqa: E402
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 from vkgrl_newton.run.methods import RUN_METHODS, THESIS_METHODS as METHODS  # noqa: E402
@@ -76,8 +76,20 @@ GRIDS = {
 FORBIDDEN_RUN_ARGS = ("--run-dir", "--task", "--env", "--action-dim", "--method", "--seed", "--resume")
 ALLOWED = {"tasks": TASKS, "envs": ENVS, "action_dims": ACTION_DIMS, "methods": RUN_METHODS}  # (+ the ppo baselines)
 # ----------------------------------------------------------------------------- the grid
+def load_grid(path) -> dict:
+    """A grid JSON file, read and checked: FileNotFoundError if missing, else ValueError in one line
+    naming the file when it is not a grid (another kind of file, damaged, a bad axis or value)."""
+    grid = read_json_object(path, "grid file")
+    try:
+        return validate_grid(grid)
+    except ValueError as e:
+        raise ValueError(one_line(f"{path}: {e}", 400)) from None
+
+
 def validate_grid(grid: dict) -> dict:
     """The grid with its axes checked; ValueError names a bad axis or value and the allowed ones."""
+    if not isinstance(grid, dict):
+        raise ValueError(f"grid: a JSON object of axes, not a {type(grid).__name__}")
     unknown = set(grid) - set(AXES) - {"variants", "method_args"}
     if unknown:
         raise ValueError(f"grid: unknown axes {sorted(unknown)}; allowed: {list(AXES)}, 'variants' and 'method_args'")
@@ -86,11 +98,13 @@ def validate_grid(grid: dict) -> dict:
         values = grid.get(axis)
         if not values:
             raise ValueError(f"grid: axis {axis!r} is missing or empty")
+        if not isinstance(values, list) or not all(isinstance(v, (str, int)) for v in values):  # (JSON: no tuples)
+            raise ValueError(f"grid: axis {axis!r} must be a list of names or numbers, got {one_line(repr(values), 100)}")
         if axis == "seeds":
             if not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in values):
                 raise ValueError(f"grid: seeds must be non-negative integers, got {values!r}")
         else:
-            bad = [v for v in values if v not in ALLOWED[axis]]
+            bad = [v for v in values if isinstance(v, bool) or v not in ALLOWED[axis]]
             if bad:
                 raise ValueError(f"grid: {axis} {bad!r} not allowed; allowed: {list(ALLOWED[axis])}")
         if len(set(values)) != len(values):
@@ -183,16 +197,16 @@ def resolve_grid(args, ap) -> dict:
         if not path.exists():
             ap.error(f"--grid {args.grid!r}: neither a named grid ({', '.join(GRIDS)}) nor a file")
         try:
-            grid = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            ap.error(f"--grid {path}: not JSON ({e})")
+            grid = read_json_object(path, "grid file")  # checked whole below, with the axis flags applied
+        except ValueError as e:
+            ap.error(f"--grid {e}")
     for axis in AXES:
         if getattr(args, axis) is not None:
             grid[axis] = getattr(args, axis)
     try:
         return validate_grid(grid)
     except ValueError as e:
-        ap.error(str(e))
+        ap.error(f"--grid {args.grid}: {e}" if args.grid not in (None, *GRIDS) else str(e))
 
 
 def split_argv(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -222,11 +236,15 @@ def main(argv: list[str] | None = None) -> int:
     given_grid = args.grid is not None or any(getattr(args, a) is not None for a in AXES)
     if record_path.exists():
         try:
-            record = json.loads(record_path.read_text())
+            record = read_json_object(record_path, "sweep record")
             if not all(k in record for k in ("grid", "run_args")):
                 raise ValueError(f"missing {[k for k in ('grid', 'run_args') if k not in record]}")
-        except (json.JSONDecodeError, ValueError, TypeError) as e:
-            ap.error(f"--out {args.out}: its sweep.json is damaged ({e}); restore it or choose another directory")
+            validate_grid(record["grid"])  # what trials_of indexes below
+            if not isinstance(record["run_args"], list) or not all(isinstance(a, str) for a in record["run_args"]):
+                raise ValueError("run_args is not a list of strings")
+        except ValueError as e:
+            ap.error(one_line(f"--out {args.out}: its sweep.json is damaged ({e}); restore it or choose another "
+                              "directory", 500))
         if given_grid or run_args:
             grid = resolve_grid(args, ap) if given_grid else record["grid"]
             if grid != record["grid"] or (run_args and run_args != record["run_args"]):
@@ -240,6 +258,12 @@ def main(argv: list[str] | None = None) -> int:
     else:
         grid = resolve_grid(args, ap)
     trials = trials_of(grid, args.out)
+    try:  # a damaged trial.json, metrics.json or curves.jsonl: one line naming it, before Ray starts
+        for t in trials:
+            trial_status(t)
+            read_trial_state(Path(t["run_dir"]))
+    except ValueError as e:
+        ap.error(str(e))
 
     if args.status:
         return print_status(trials)
@@ -325,8 +349,8 @@ def sweep_summary(trials: list[dict]) -> dict:
         record = {"state": state, "transitions": transitions,
                   **{k: v for k, v in ts.items() if k in ("attempts", "resumed")}}
         if state == "done" and "submitted_unix" in ts:
-            training = json.loads((run_dir / "metrics.json").read_text()).get("training", {})
-            if "first_transition_unix" in training:
+            training = read_json_object(run_dir / "metrics.json", "run's metrics").get("training")
+            if isinstance(training, dict) and "first_transition_unix" in training:
                 record["ray_s"] = ts["started_unix"] - ts["submitted_unix"]  # queueing and a worker's start
                 record["startup_s"] = training["first_transition_unix"] - ts["started_unix"]  # process, env, caches
         out[t["name"]] = record

@@ -6,6 +6,14 @@ with "format" = CHECKPOINT_FORMAT added; each kind of checkpoint (a training run
 vkgrl_newton.agents.checkpoint; a VAE's, vkgrl_newton.vision.vae) names the top-level keys it
 must hold. Written with `atomic_write`: a crash at any moment leaves either the old checkpoint or
 the new one, never a torn file.
+
+Reading a user's file: every loader (`load_checkpoint`, `load_npz`, `read_json_object` here, and the
+loaders of each kind built on them: DemoSet.load, KMPTables.load, load_vae, ImageSet, train/sweep.py's
+grid) turns any damage -- another kind of file, a truncated one, missing or mistyped keys, wrong shapes,
+NaN or inf where numbers must be finite, a foreign format version -- into one ValueError whose message
+is one line naming the file (FileNotFoundError when it is missing). That is the one error type the
+CLIs turn into `prog: error: <line>` and exit 2 (argparse's `ap.error`), and the gymnasium ids into
+their one-line ValueError; tests/test_loader_fuzz.py fuzzes every loader against it.
 """
 
 from __future__ import annotations
@@ -16,18 +24,72 @@ import os
 import tempfile
 import zipfile
 import zlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 __all__ = ["atomic_write", "current_umask", "atomic_savez", "atomic_write_text", "strict_json", "load_npz", "NPZ_READ_ERRORS",
-           "CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "check_meta"]
+           "CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "check_meta", "one_line", "short_repr",
+           "read_json_object", "check_finite", "check_npy_size"]
 
 CHECKPOINT_FORMAT = 1
 
-# What np.load / reading a member of a damaged npz raises besides ValueError.
-NPZ_READ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
+# What np.load / reading a member of a damaged npz raises besides ValueError (MemoryError: a header
+# that declares an array larger than the memory, before its data is read).
+NPZ_READ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error, MemoryError)
+
+
+def one_line(text, limit: int = 300) -> str:
+    """`text` as one line of at most `limit` characters: a refusal's message is one line."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def short_repr(value, limit: int = 80) -> str:
+    """repr(value) as one short line (a damaged file's value may be a large tensor or a long string)."""
+    return one_line(repr(value), limit)
+
+
+def check_finite(obj, path, where: str, skip: tuple[str, ...] = ()) -> None:
+    """ValueError naming the file and the entry when a float tensor or array inside `obj` (nested
+    dicts, lists, tuples) holds NaN or inf (plain numbers are settings, not weights: not checked).
+    Entries named in `skip` are not looked into."""
+    import torch
+
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            if k not in skip:
+                check_finite(v, path, f"{where}.{k}", skip)
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            check_finite(v, path, f"{where}[{i}]", skip)
+    elif isinstance(obj, torch.Tensor):
+        if (obj.is_floating_point() or obj.is_complex()) and not bool(torch.isfinite(obj).all()):
+            raise ValueError(f"{path}: {where} holds NaN or inf")
+    elif isinstance(obj, np.ndarray):
+        if obj.dtype.kind in "fc" and not np.isfinite(obj).all():
+            raise ValueError(f"{path}: {where} holds NaN or inf")
+
+
+def read_json_object(path, what: str) -> dict:
+    """A JSON object read from a user's file; FileNotFoundError if missing, ValueError (one line naming
+    the file) if it is not a readable UTF-8 JSON object or holds bare NaN / Infinity (not JSON: strict_json
+    writes null)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{what} {path} does not exist")
+
+    def refuse_constant(name):
+        raise ValueError(f"bare {name} (not JSON)")
+
+    try:
+        value = json.loads(path.read_bytes().decode("utf-8"), parse_constant=refuse_constant)
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:  # JSONDecodeError is a ValueError
+        raise ValueError(one_line(f"{path}: not a readable {what} (a JSON object): {type(e).__name__}: {e}")) from None
+    if not isinstance(value, dict):
+        raise ValueError(f"{path}: not a {what}: a JSON {type(value).__name__}, not an object")
+    return value
 
 
 def atomic_write(path, overwrite: bool, write, suffix: str = ".tmp") -> Path:
@@ -110,14 +172,36 @@ def load_npz(path, what: str, required: tuple[str, ...]) -> dict:
         raise ValueError(f"{path}: not a readable {what} file (an .npz archive); this is "
                          f"{'a directory' if path.is_dir() else 'another kind of file, or a damaged one'}")
     try:
+        _check_npz_sizes(path)
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
     except NPZ_READ_ERRORS as e:
-        raise ValueError(f"{path}: not a readable {what} file ({type(e).__name__}: {e})") from None
+        raise ValueError(one_line(f"{path}: not a readable {what} file ({type(e).__name__}: {e})")) from None
     missing = [k for k in required if k not in arrays]
     if missing:
         raise ValueError(f"{path}: not a {what} file; missing keys {missing}")
     return arrays
+
+
+def _check_npz_sizes(path: Path) -> None:
+    """ValueError for a member whose .npy header declares more data than the member holds: numpy would
+    allocate the declared size before reading (a damaged header can ask for terabytes)."""
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            if info.filename.endswith(".npy"):
+                with zf.open(info) as f:
+                    check_npy_size(f, info.file_size, f"member {info.filename}")
+
+
+def check_npy_size(f, size: int, what: str) -> None:
+    """ValueError unless the .npy header at `f`'s position declares at most `size` bytes of data
+    (`size`: what the file or archive member holds, header included)."""
+    version = np.lib.format.read_magic(f)
+    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, _, dtype = read_header(f)
+    nbytes = math.prod(shape) * dtype.itemsize
+    if nbytes > size:
+        raise ValueError(f"{what} declares {shape} {dtype} ({nbytes} bytes) but holds {size} bytes")
 
 
 def save_checkpoint(path, payload: dict) -> Path:
@@ -128,12 +212,14 @@ def save_checkpoint(path, payload: dict) -> Path:
 
 
 def load_checkpoint(path, map_location="cpu", required: Sequence[str] = (),
-                    hint: str = "resume from another one or start a new run directory") -> dict:
-    """Read a checkpoint; FileNotFoundError if missing, ValueError (naming the file) if it is
-    damaged, not a checkpoint of this project, or of another format version.
+                    hint: str = "resume from another one or start a new run directory",
+                    kinds: Mapping[str, type | tuple[type, ...]] | None = None) -> dict:
+    """Read a checkpoint; FileNotFoundError if missing, ValueError (one line naming the file) if it
+    is damaged, not a checkpoint of this project, or of another format version.
 
     `required`: the top-level keys this kind of checkpoint must hold ("format" is always
-    required). `hint`: what to do about a damaged file, for the message.
+    required). `hint`: what to do about a damaged file, for the message. `kinds`: the type each
+    top-level key must have where present (e.g. {"meta": dict}), so that callers may index them.
     """
     import torch
 
@@ -145,14 +231,20 @@ def load_checkpoint(path, map_location="cpu", required: Sequence[str] = (),
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # any other kind of file breaks torch's unpickler in its own way (KeyError, IndexError, ...)
         first = (str(e).strip().splitlines() or [""])[0][:200]
-        raise ValueError(f"checkpoint {path} is damaged or not a checkpoint ({type(e).__name__}: {first}); "
-                         f"{hint}") from None
+        raise ValueError(one_line(f"checkpoint {path} is damaged or not a checkpoint ({type(e).__name__}: {first}); "
+                                  f"{hint}", 600)) from None
     if not isinstance(payload, dict) or any(k not in payload for k in required):
         missing = [k for k in required if not isinstance(payload, dict) or k not in payload]
         raise ValueError(f"checkpoint {path} is not a vkgrl-newton checkpoint of the expected kind "
                          f"(missing {missing})")
-    if payload["format"] != CHECKPOINT_FORMAT:
-        raise ValueError(f"checkpoint {path} has format {payload['format']}, this code reads {CHECKPOINT_FORMAT}")
+    fmt = payload["format"]
+    if type(fmt) is not int or fmt != CHECKPOINT_FORMAT:  # (a tensor's != is no bool; True == 1)
+        raise ValueError(f"checkpoint {path} has format {short_repr(fmt)}, this code reads {CHECKPOINT_FORMAT}")
+    for key, kind in (kinds or {}).items():
+        if key in payload and not isinstance(payload[key], kind):
+            names = " or ".join(t.__name__ for t in (kind if isinstance(kind, tuple) else (kind,)))
+            raise ValueError(f"checkpoint {path} is damaged: its {key!r} is a {type(payload[key]).__name__}, "
+                             f"not a {names}")
     return payload
 
 

@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from vkgrl_newton._io import atomic_write_text
+from vkgrl_newton._io import atomic_write_text, one_line, read_json_object
 from vkgrl_newton.results.curves import read_curves
 from vkgrl_newton.signals import STOP_EXIT_CODES
 
@@ -49,8 +49,25 @@ def _die_with_parent() -> None:
 
 # ----------------------------------------------------------------------------- trial state on disk
 def read_trial_state(run_dir: Path) -> dict:
+    """The trial's trial.json ({} when it has none); ValueError in one line naming it when damaged."""
     path = run_dir / "trial.json"
-    return json.loads(path.read_text()) if path.exists() else {}
+    if not path.exists():
+        return {}
+    state = read_json_object(path, "trial state")
+    for key, kind in (("attempts", int), ("pid", int), ("state", str), ("host", str)):
+        if key in state and (not isinstance(state[key], kind) or isinstance(state[key], bool)):
+            raise ValueError(f"{path} is damaged: {key} is {one_line(repr(state[key]), 60)}, not a {kind.__name__}; "
+                             "delete it and the trial is run again from its checkpoint")
+    return state
+
+
+def run_transitions(metrics_path: Path) -> int:
+    """training.transitions of a finished run's metrics.json; ValueError in one line naming it when damaged."""
+    training = read_json_object(metrics_path, "run's metrics").get("training")
+    transitions = training.get("transitions") if isinstance(training, dict) else None
+    if type(transitions) is not int or transitions < 0:
+        raise ValueError(f"{metrics_path} is damaged: no whole number training.transitions")
+    return transitions
 
 
 def write_trial_state(run_dir: Path, **fields) -> None:
@@ -71,9 +88,12 @@ def trial_status(trial: dict, stale_s: float = 300.0) -> tuple[str, int]:
     run_dir = Path(trial["run_dir"])
     metrics_path = run_dir / "metrics.json"
     if metrics_path.exists():
-        return "done", int(json.loads(metrics_path.read_text()).get("training", {}).get("transitions", 0))
-    rows = read_curves(run_dir) if run_dir.exists() else []
-    transitions = int(rows[-1]["transitions"]) if rows else 0
+        return "done", run_transitions(metrics_path)
+    try:
+        rows = read_curves(run_dir) if run_dir.exists() else []
+        transitions = int(rows[-1]["transitions"]) if rows else 0
+    except (ValueError, TypeError, AttributeError, OverflowError) as e:  # (a row that is no object, a bad count)
+        raise ValueError(one_line(f"{run_dir / 'curves.jsonl'} is damaged ({type(e).__name__}: {e})")) from None
     state = read_trial_state(run_dir)
     if state.get("state") == "failed":
         return "failed", transitions

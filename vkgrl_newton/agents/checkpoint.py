@@ -24,12 +24,41 @@ from collections.abc import Sequence
 from .. import _io
 from .._io import CHECKPOINT_FORMAT, check_meta, save_checkpoint
 
-__all__ = ["CHECKPOINT_FORMAT", "TRAINING_KEYS", "save_checkpoint", "load_checkpoint", "check_meta"]
+__all__ = ["CHECKPOINT_FORMAT", "TRAINING_KEYS", "META_KEYS", "save_checkpoint", "load_checkpoint", "check_meta"]
 
 TRAINING_KEYS = ("format", "meta", "counters", "agent", "rng")  # what a training checkpoint holds
+# what resume and evaluate read from meta by name (run/resolve.py, run/evaluate.py): present in every run's meta
+META_KEYS = {"task": str, "method": str, "env": str, "action_dim": int, "time_obs": bool}
+_KINDS = {"meta": dict, "counters": dict, "agent": dict, "rng": dict, "plan": dict}
+# replay buffers hold what the env gave, and are not weights: NaN there is not a damaged file
+_NOT_WEIGHTS = ("buffer", "prior_buffer")
 
 
 def load_checkpoint(path, map_location="cpu", required: Sequence[str] = TRAINING_KEYS,
                     hint: str = "resume from another one or start a new run directory") -> dict:
-    """`_io.load_checkpoint` asking for a training checkpoint's keys unless `required` says otherwise."""
-    return _io.load_checkpoint(path, map_location=map_location, required=required, hint=hint)
+    """`_io.load_checkpoint` asking for a training checkpoint's keys unless `required` says otherwise.
+
+    A training checkpoint (the default `required`) is also checked for what its readers index
+    without looking: meta's identity fields, whole-number counters, and finite weights (NaN or inf in
+    the agent's networks or optimizers is a ValueError naming the file and the entry)."""
+    payload = _io.load_checkpoint(path, map_location=map_location, required=required, hint=hint, kinds=_KINDS)
+    if tuple(required) != TRAINING_KEYS:
+        return payload
+    meta = payload["meta"]
+    for key, kind in META_KEYS.items():
+        if key not in meta:
+            raise ValueError(f"checkpoint {path} is damaged: its meta has no {key!r}")
+        if not isinstance(meta[key], kind) or (kind is int and isinstance(meta[key], bool)):
+            raise ValueError(f"checkpoint {path} is damaged: meta {key!r} is {_io.short_repr(meta[key])}, "
+                             f"not a {kind.__name__}")
+    for key in ("prior", "vision", "sac", "ppo"):
+        if key in meta and not isinstance(meta[key], dict):
+            raise ValueError(f"checkpoint {path} is damaged: meta {key!r} is a {type(meta[key]).__name__}, not a dict")
+    for key, file_key in (("prior", "demos"), ("vision", "vae")):
+        if key in meta and not isinstance(meta[key].get(file_key), str):
+            raise ValueError(f"checkpoint {path} is damaged: meta {key!r} names no {file_key} file")
+    bad = {k: v for k, v in payload["counters"].items() if type(v) is not int or v < 0}
+    if bad:
+        raise ValueError(f"checkpoint {path} is damaged: counters {_io.short_repr(bad)} are not whole numbers >= 0")
+    _io.check_finite(payload["agent"], path, "agent", skip=_NOT_WEIGHTS)
+    return payload

@@ -7,7 +7,8 @@ File format (npz, no pickles), one row per recorded control step of every demons
     task         str             task name (vkgrl_newton.tasks)
     psi_ref      float           reference yaw of q_ref used for eta (rad)
     action_dim   int             4 if roll and pitch were held at the reference, else 6
-    source       str             'synthetic' or the recorder's name (e.g. 'scripted')
+    source       str             'synthetic' or the recorder's name (e.g. 'scripted'); optional
+    format_version int           DEMO_FORMAT_VERSION (1); optional, a file without it is read as 1
 
 Rotation vectors must be continuous along each demonstration: log() wraps at an angle of
 pi, so a recorder applies `pose.unwrap_rotation_vectors` per demonstration (a jump of more
@@ -28,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._io import atomic_savez, load_npz
+from .._io import atomic_savez, load_npz, one_line
 from ..rotations import quat_from_euler_xyz
 from ..tasks import get_task
 from .pose import pose_to_eta, unwrap_rotation_vectors
@@ -108,20 +109,51 @@ class DemoSet:
 
     @classmethod
     def load(cls, path) -> "DemoSet":
-        """Read a demonstration file; FileNotFoundError if missing, ValueError if damaged or invalid."""
+        """Read a demonstration file; FileNotFoundError if missing, ValueError (one line naming the
+        file) if damaged, of another format version or invalid."""
         data = load_npz(path, "demonstration", ("s", "eta", "demo_lengths", "task", "psi_ref", "action_dim"))
         try:
+            if "format_version" in data:
+                version = _whole(data["format_version"], "format_version")
+                if version != DEMO_FORMAT_VERSION:
+                    raise ValueError(f"format_version {version}, this code reads {DEMO_FORMAT_VERSION}")
+            for name in ("s", "eta"):
+                if data[name].dtype.kind not in "iuf":  # a float cast would drop an imaginary part or read text
+                    raise ValueError(f"{name} is {data[name].dtype}, not numbers")
+            lengths = data["demo_lengths"]
+            if lengths.dtype.kind not in "iu":  # a float cast of NaN or 1e30 is an arbitrary integer
+                raise ValueError(f"demo_lengths is {lengths.dtype}, not whole numbers")
+            task = _text(data["task"], "task")
+            get_task(task)  # an unknown task: ValueError naming the known ones
+            psi = data["psi_ref"]
+            psi_ref = float(psi.reshape(-1)[0]) if psi.size == 1 and psi.dtype.kind in "iuf" else None
+            if psi_ref is None or not math.isfinite(psi_ref):
+                raise ValueError(f"psi_ref must be one finite number, got {psi.dtype} {psi.shape}")
             return cls(
                 s=np.asarray(data["s"], dtype=np.float64),
                 eta=np.asarray(data["eta"], dtype=np.float64),
-                demo_lengths=np.asarray(data["demo_lengths"], dtype=np.int64).reshape(-1),
-                task=str(data["task"]),
-                psi_ref=float(data["psi_ref"]),
-                action_dim=int(data["action_dim"]),
-                source=str(data["source"]) if "source" in data else "unknown",
+                demo_lengths=np.asarray(lengths, dtype=np.int64).reshape(-1),
+                task=task,
+                psi_ref=psi_ref,
+                action_dim=_whole(data["action_dim"], "action_dim"),
+                source=_text(data["source"], "source") if "source" in data else "unknown",
             )
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"{path}: invalid demonstration file: {e}") from None
+        except (TypeError, ValueError, KeyError, IndexError, OverflowError) as e:
+            raise ValueError(one_line(f"{path}: invalid demonstration file: {e}")) from None
+
+
+def _whole(a: np.ndarray, name: str) -> int:
+    """One whole number stored as a 0-d (or one-element) integer array."""
+    if a.size != 1 or a.dtype.kind not in "iu":
+        raise ValueError(f"{name} must be one whole number, got {a.dtype} {a.shape}")
+    return int(a.reshape(-1)[0])
+
+
+def _text(a: np.ndarray, name: str) -> str:
+    """One string stored as a 0-d unicode array."""
+    if a.size != 1 or a.dtype.kind != "U":
+        raise ValueError(f"{name} must be one string, got {a.dtype} {a.shape}")
+    return str(a.reshape(-1)[0])
 
 
 def _min_jerk(tau: np.ndarray) -> np.ndarray:

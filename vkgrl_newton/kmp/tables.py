@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._io import atomic_savez, load_npz
+from .._io import atomic_savez, load_npz, one_line
 from ..rotations import quat_exp, quat_mul
 from .gmr import GMM, gmr
 from .kmp import _check_nonnegative, _check_positive
@@ -153,39 +153,57 @@ class KMPTables:
         """Read tables written by `save`; FileNotFoundError if missing, ValueError if damaged,
         incomplete, of another format version, or inconsistent (shapes, NaN, grid length)."""
         data = load_npz(path, "KMP tables", _TABLE_KEYS)
-        version = int(data["format_version"])
-        if version != TABLES_FORMAT_VERSION:
-            raise ValueError(f"{path}: tables format {version}, this code reads {TABLES_FORMAT_VERSION}; rebuild them")
         try:
-            mean = torch.as_tensor(data["mean"], dtype=torch.float64)
-            gain = torch.as_tensor(data["gain"], dtype=torch.float64)
-            dt = float(data["dt"])
+            version = _one(data, "format_version", "iu")
+            if version != TABLES_FORMAT_VERSION:
+                raise ValueError(f"tables format {version}, this code reads {TABLES_FORMAT_VERSION}; rebuild them")
+            arrays = {}
+            for name in ("mean", "gain", "gmm_weights", "gmm_means", "gmm_covariances"):
+                if data[name].dtype.kind not in "iuf":  # text or complex numbers are no tables
+                    raise ValueError(f"{name} is {data[name].dtype}, not real numbers")
+                if not np.isfinite(data[name]).all():
+                    raise ValueError(f"{name} contains NaN or inf")
+                arrays[name] = torch.as_tensor(data[name], dtype=torch.float64)
+            mean, gain = arrays["mean"], arrays["gain"]
+            dt = _one(data, "dt", "iuf")
             if mean.ndim != 2 or mean.shape[1] != 6 or gain.shape != (mean.shape[0], 6, 6):
                 raise ValueError(f"mean {tuple(mean.shape)} / gain {tuple(gain.shape)} are not (S, 6) / (S, 6, 6)")
             if mean.shape[0] != _steps_of(dt) + 1:
                 raise ValueError(f"{mean.shape[0]} table rows do not match dt = {dt} ({_steps_of(dt) + 1} grid points)")
-            if not (torch.isfinite(mean).all() and torch.isfinite(gain).all()):
-                raise ValueError("tables contain NaN or inf")
+            horizon, action_dim = _one(data, "horizon", "iu"), _one(data, "action_dim", "iu")
+            lam, beta, l = (_one(data, k, "iuf") for k in ("lam", "beta", "l"))
+            _check_params(lam, beta, l, action_dim)
+            if horizon < 0:
+                raise ValueError(f"horizon must be >= 0, got {horizon}")
+            reference = _one(data, "reference", "U") if "reference" in data else "gmr"  # older files: GMR
+            if reference not in REFERENCES:
+                raise ValueError(f"reference {reference!r}; allowed: {list(REFERENCES)}")
             return cls(
                 mean=mean,
                 gain=gain,
                 dt=dt,
-                horizon=int(data["horizon"]),
-                lam=float(data["lam"]),
-                beta=float(data["beta"]),
-                l=float(data["l"]),
-                action_dim=int(data["action_dim"]),
-                gmm=GMM(
-                    weights=torch.as_tensor(data["gmm_weights"]),
-                    means=torch.as_tensor(data["gmm_means"]),
-                    covariances=torch.as_tensor(data["gmm_covariances"]),
-                ),
-                source_sha256=str(data["source_sha256"]),
-                fit_seed=int(data["fit_seed"]),
-                reference=str(data["reference"]) if "reference" in data else "gmr",  # older files: GMR
+                horizon=horizon,
+                lam=lam,
+                beta=beta,
+                l=l,
+                action_dim=action_dim,
+                gmm=GMM(weights=arrays["gmm_weights"], means=arrays["gmm_means"],
+                        covariances=arrays["gmm_covariances"]),
+                source_sha256=_one(data, "source_sha256", "U"),
+                fit_seed=_one(data, "fit_seed", "iu"),
+                reference=reference,
             )
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"{path}: invalid KMP tables file: {e}") from None
+        except (TypeError, ValueError, IndexError, OverflowError) as e:
+            raise ValueError(one_line(f"{path}: invalid KMP tables file: {e}")) from None
+
+
+def _one(data: dict, name: str, kinds: str):
+    """The one value of a scalar entry of a tables file, of a dtype kind in `kinds` (i, u, f, U)."""
+    a = data[name]
+    if a.size != 1 or a.dtype.kind not in kinds:
+        raise ValueError(f"{name} must be one {'string' if kinds == 'U' else 'number'}, got {a.dtype} {a.shape}")
+    v = a.reshape(-1)[0]
+    return str(v) if kinds == "U" else int(v) if kinds in ("iu",) else float(v)
 
 
 _TABLE_KEYS = ("format_version", "mean", "gain", "dt", "horizon", "lam", "beta", "l", "action_dim",

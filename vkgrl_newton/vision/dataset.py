@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._io import atomic_write, atomic_write_text
+from .._io import atomic_write, atomic_write_text, check_npy_size, one_line, short_repr
 
 __all__ = ["IMAGESET_FORMAT", "IMAGESET_FILES", "ImageSetWriter", "ImageSet", "STATE_DIM", "GEOMETRY_COLUMNS",
            "PIXEL_COLUMNS"]
@@ -191,6 +191,18 @@ def _peek_format(d: Path):
         return None
 
 
+def _load_npy(path: Path, mmap_mode=None) -> np.ndarray:
+    """One .npy array; ValueError for anything else np.load would return (an npz archive), or for a
+    header that declares more data than the file holds (numpy would allocate it first)."""
+    with open(path, "rb") as f:
+        check_npy_size(f, path.stat().st_size, path.name)
+    arr = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
+    if not isinstance(arr, np.ndarray):
+        arr.close()
+        raise ValueError(f"{path.name} is an npz archive, not one .npy array")
+    return arr
+
+
 class ImageSet:
     """A finished image set, read back; `images` stays on disk (memmap), the rest is loaded.
 
@@ -206,21 +218,27 @@ class ImageSet:
         if missing:
             why = " (the writer did not finish: images.npy.partial is there)" if (d / _PARTIAL).exists() else ""
             raise FileNotFoundError(f"image set {d} is incomplete: missing {', '.join(missing)}{why}")
+        name = "meta.json"
         try:
-            self.meta = json.loads((d / "meta.json").read_text())
-            self.images = np.load(d / "images.npy", mmap_mode="r")
-            self.state = np.load(d / "state.npy")
-            self.episode = np.load(d / "episode.npy")
-            self.split = np.load(d / "split.npy")
-            self.geometry = self.pixels = None  # format 1: not collected
-            if (d / "geometry.npy").is_file():
-                self.geometry = np.load(d / "geometry.npy")
-                self.pixels = np.load(d / "pixels.npy")
-        except (OSError, ValueError, EOFError) as e:  # json.JSONDecodeError is a ValueError
-            raise ValueError(f"image set {d} has a damaged file ({type(e).__name__}: {e})") from None
+            self.meta = json.loads((d / name).read_bytes().decode("utf-8"))
+            loaded = {}
+            for name in fmt_files[1:4] + (_FORMAT2_FILES if (d / "geometry.npy").is_file() else ()):
+                loaded[name] = _load_npy(d / name)
+            name = "images.npy"
+            self.images = _load_npy(d / name, mmap_mode="r")
+        except (OSError, ValueError, EOFError, MemoryError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError: ValueErrors
+            raise ValueError(one_line(f"image set {d} has a damaged file: {name} ({type(e).__name__}: {e})")) from None
+        self.state, self.episode, self.split = (loaded[f] for f in ("state.npy", "episode.npy", "split.npy"))
+        self.geometry, self.pixels = loaded.get("geometry.npy"), loaded.get("pixels.npy")  # format 1: not collected
         fmt = self.meta.get("format") if isinstance(self.meta, dict) else None
-        if fmt not in (1, IMAGESET_FORMAT):
-            raise ValueError(f"image set {d}: meta.json has format {fmt!r}, this code reads 1 and {IMAGESET_FORMAT}")
+        if type(fmt) is not int or fmt not in (1, IMAGESET_FORMAT):
+            raise ValueError(f"image set {d}: meta.json has format {short_repr(fmt)}, this code reads 1 and "
+                             f"{IMAGESET_FORMAT}")
+        for key, kind in (("count", int), ("resolution", int), ("task", str)):
+            value = self.meta.get(key)
+            if not isinstance(value, kind) or isinstance(value, bool) or (kind is int and value < 0):
+                raise ValueError(f"image set {d}: meta.json's {key} is {short_repr(value)}, not a "
+                                 f"{'whole number >= 0' if kind is int else 'string'}")
         n, r = self.meta["count"], self.meta["resolution"]
         expected = {"images.npy": (self.images, np.uint8, (n, r, r, 3)),
                     "state.npy": (self.state, np.float32, (n, STATE_DIM)),
@@ -232,6 +250,8 @@ class ImageSet:
             if arr.dtype != dtype or arr.shape != shape:
                 raise ValueError(f"image set {d}: {name} is {arr.dtype} {arr.shape}, "
                                  f"meta.json says {np.dtype(dtype)} {shape}")
+        if not np.isfinite(self.state).all():  # (geometry and pixels are NaN by design where unknown)
+            raise ValueError(f"image set {d}: state.npy holds NaN or inf")
         if not np.isin(self.split, (0, 1)).all():
             raise ValueError(f"image set {d}: split.npy holds values other than 0 (train) and 1 (validation)")
         if resolution is not None and resolution != r:

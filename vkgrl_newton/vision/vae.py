@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .._io import load_checkpoint, save_checkpoint
+from .._io import check_finite, load_checkpoint, one_line, save_checkpoint, short_repr
 
 __all__ = [
     "VAEConfig",
@@ -264,6 +264,12 @@ class FrozenEncoder(nn.Module):
 
 # ----------------------------------------------------------------------------- checkpoints
 _VAE_KEYS = ("kind", "vae_format", "config", "meta", "model")
+_VAE_KINDS = {"config": dict, "meta": dict, "model": dict, "optimizer": (dict, type(None)), "epoch": (int, type(None)),
+              "extra": (dict, type(None))}
+# a train_vae checkpoint (extra not None): what vision.train and train/train_vae.py read back on --resume
+_TRAINING_EXTRA = {"order_rng": torch.Tensor, "noise_rng": torch.Tensor, "noise_device": str, "history": dict,
+                   "best": dict, "timing": dict, "epochs": int}
+_TRAINING_META = ("batch_size", "lr", "seed")
 
 
 def _train_command(task: object = None) -> str:
@@ -297,6 +303,22 @@ def save_vae(path, vae: DenoisingVAE, config: VAEConfig, meta: dict, optimizer: 
     })
 
 
+def _check_training_state(payload: dict, path) -> None:
+    """A train_vae checkpoint (one with `extra`) holds what a resume reads, of the right types."""
+    extra = payload.get("extra")
+    if extra is None:
+        return  # weights only
+    if payload.get("optimizer") is None or type(payload.get("epoch")) is not int or payload["epoch"] < 0:
+        raise ValueError(f"VAE checkpoint {path} is damaged: a training checkpoint without its optimizer or epoch")
+    for key, kind in _TRAINING_EXTRA.items():
+        if not isinstance(extra.get(key), kind):
+            raise ValueError(f"VAE checkpoint {path} is damaged: extra {key!r} is {short_repr(extra.get(key))}, "
+                             f"not a {kind.__name__}")
+    missing = [k for k in _TRAINING_META if k not in payload["meta"]]
+    if missing:
+        raise ValueError(f"VAE checkpoint {path} is damaged: its meta has no {missing}")
+
+
 def load_vae(path, expect: dict | None = None, map_location: str | torch.device = "cpu"
              ) -> tuple[DenoisingVAE, dict]:
     """Read a VAE written by `save_vae`: (the VAE in eval mode on `map_location`, the whole payload).
@@ -310,22 +332,34 @@ def load_vae(path, expect: dict | None = None, map_location: str | torch.device 
     if not path.is_file():
         raise FileNotFoundError(f"VAE checkpoint {path} does not exist; train one with {_train_command(task)}")
     payload = load_checkpoint(path, map_location=map_location, required=_VAE_KEYS,
-                              hint=f"retrain the VAE with {_train_command(task)}")
-    if payload["kind"] != VAE_KIND or payload["vae_format"] != VAE_FORMAT:
-        raise ValueError(f"checkpoint {path} is a {payload['kind']!r} of format {payload['vae_format']!r}; "
-                         f"this code reads {VAE_KIND!r} of format {VAE_FORMAT}")
+                              hint=f"retrain the VAE with {_train_command(task)}", kinds=_VAE_KINDS)
+    if (not isinstance(payload["kind"], str) or payload["kind"] != VAE_KIND or type(payload["vae_format"]) is not int
+            or payload["vae_format"] != VAE_FORMAT):
+        raise ValueError(f"checkpoint {path} is a {short_repr(payload['kind'])} of format "
+                         f"{short_repr(payload['vae_format'])}; this code reads {VAE_KIND!r} of format {VAE_FORMAT}")
     meta = payload["meta"]
     for name, want in (expect or {}).items():
         if name not in meta:
             raise ValueError(f"VAE checkpoint {path}: expected {name}={want!r}, the checkpoint does not store {name}")
-        if meta[name] != want:
+        if not isinstance(meta[name], type(want)) or meta[name] != want:  # (a tensor's != is no bool)
             raise ValueError(f"VAE checkpoint {path}: {name} mismatch, expected {want!r}, checkpoint has "
-                             f"{meta[name]!r}")
+                             f"{short_repr(meta[name])}")
+    _check_training_state(payload, path)
     try:
         config = VAEConfig(**payload["config"])
+        with torch.device("meta"):  # the shapes the config implies, allocating nothing: a damaged config
+            shapes = {k: v.shape for k, v in DenoisingVAE(config).state_dict().items()}  # may ask for terabytes
+        got = {k: getattr(v, "shape", None) for k, v in payload["model"].items()}
+        if got != shapes:
+            wrong = sorted(k for k in set(got) | set(shapes) if got.get(k) != shapes.get(k))
+            raise ValueError(f"{len(wrong)} weights missing, extra or of another shape than the config's "
+                             f"(first: {wrong[0]})")
+        check_finite(payload["model"], path, "model")
         vae = DenoisingVAE(config)
         vae.load_state_dict(payload["model"])
     except (TypeError, ValueError, RuntimeError) as e:
-        first = (str(e).strip().splitlines() or [""])[0][:200]
-        raise ValueError(f"VAE checkpoint {path}: config or weights do not fit ({type(e).__name__}: {first})") from None
+        if str(e).startswith(f"{path}: "):  # check_finite's own line
+            raise
+        raise ValueError(one_line(f"VAE checkpoint {path}: config or weights do not fit ({type(e).__name__}: {e})",
+                                  400)) from None
     return vae.to(map_location).eval(), payload
