@@ -19,6 +19,7 @@ here asks for the keys above by default.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 from .. import _io
@@ -57,8 +58,11 @@ def load_checkpoint(path, map_location="cpu", required: Sequence[str] = TRAINING
     for key, file_key in (("prior", "demos"), ("vision", "vae")):
         if key in meta and not isinstance(meta[key].get(file_key), str):
             raise ValueError(f"checkpoint {path} is damaged: meta {key!r} names no {file_key} file")
-    bad = {k: v for k, v in payload["counters"].items() if type(v) is not int or v < 0}
+    # counts are whole numbers; wall_s (the run's training seconds so far) is a float
+    bad = {k: v for k, v in payload["counters"].items()
+           if not (type(v) is int or (k == "wall_s" and type(v) is float and math.isfinite(v))) or v < 0}
     if bad:
-        raise ValueError(f"checkpoint {path} is damaged: counters {_io.short_repr(bad)} are not whole numbers >= 0")
+        raise ValueError(f"checkpoint {path} is damaged: counters {_io.short_repr(bad)} are not whole numbers >= 0 "
+                         "(wall_s: seconds >= 0)")
     _io.check_finite(payload["agent"], path, "agent", skip=_NOT_WEIGHTS)
     return payload
