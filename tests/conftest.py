@@ -1,10 +1,14 @@
 """Shared test setup: every test runs on the CPU device."""
 
 import os
+import tempfile
 
 import pytest
 
 os.environ.setdefault("CUDA_VISIBLE_DEVICES", "")
+# A SAC built with cpu_matmul="auto" outside a run keeps its per-machine choice in the user's cache
+# (agents/matmul_backend.py); the tests keep theirs apart, in a directory of the session's own.
+os.environ.setdefault("VKGRL_NEWTON_CACHE_DIR", tempfile.mkdtemp(prefix="vkgrl_test_cache_"))
 
 
 @pytest.fixture(scope="module")

@@ -219,7 +219,7 @@ def test_onednn_layers_match_the_float64_torch_networks():
 
     if not onednn_available():
         pytest.skip("this torch has no oneDNN linear")
-    fast = small_agent(obs_dim=5, action_dim=3, seed=3, n_critics=3)
+    fast = small_agent(obs_dim=5, action_dim=3, seed=3, n_critics=3, cpu_matmul="onednn")
     assert fast.actor.matmul == fast.critic.matmul == "onednn"
     ref = small_agent(obs_dim=5, action_dim=3, seed=3, n_critics=3, cpu_matmul="torch")
     assert ref.actor.matmul == "torch"

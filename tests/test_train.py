@@ -279,6 +279,9 @@ def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatc
     config = json.loads((run_dir / "config.json").read_text())
     assert config["method"] == "sac" and config["sac"]["batch_size"] == 8
     assert config["sac"]["warmup"] == "uniform" and config["sac"]["actor_init_std"] is None
+    # the CPU matmul library that ran ("auto" resolved before the run), in config.json and the checkpoint
+    backend = config["sac"]["cpu_matmul"]
+    assert backend in ("onednn", "torch") and killed["meta"]["sac"]["cpu_matmul"] == backend
 
     # a directory that holds a run is never reused without --resume
     with pytest.raises(SystemExit):
@@ -304,6 +307,11 @@ def test_run_sac_checkpoint_kill_and_resume(run_py, wp_cpu, tmp_path, monkeypatc
     assert "train/critic_loss" in scalars and all(math.isfinite(v) for v in scalars["train/critic_loss"])
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["training"]["transitions"] == 40
+    assert metrics["cpu_matmul"] == backend == load_checkpoint(ckpt_path)["meta"]["sac"]["cpu_matmul"]  # kept on resume
+    other = "torch" if backend == "onednn" else "onednn"
+    with pytest.raises(SystemExit) as exc:  # never changed silently
+        run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "48", "--no-progress", "--cpu-matmul", other])
+    assert exc.value.code == 2
     assert json.loads((run_dir / "metrics_at_16.json").read_text())["training"]["transitions"] == 16  # kept aside
     assert json.loads((run_dir / "config_at_16.json").read_text())["total_steps"] == 16  # the earlier plan
     assert json.loads((run_dir / "config.json").read_text())["total_steps"] == 40

@@ -34,7 +34,7 @@ from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
 from vkgrl_newton.cli_types import (add_cache_dir_option, add_device_option, add_eager_physics_flag,  # noqa: E402
                                     add_eval_seed_option, add_kmp_reference_option, positive_int)
 from vkgrl_newton.results.paired import EVAL_SEED  # noqa: E402
-from vkgrl_newton.run.config import ConfigError  # noqa: E402
+from vkgrl_newton.run.config import ConfigError, add_cpu_matmul_option  # noqa: E402
 from vkgrl_newton.run.evaluate import POLICIES, checkpoint_config, evaluate_policy  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
@@ -65,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_cache_dir_option(ap)
     ap.add_argument("--demos", type=Path, default=None, help="kmp_prior, kmp_search: your own demonstrations")
     add_kmp_reference_option(ap, "gmr")
+    add_cpu_matmul_option(ap, "a SAC checkpoint's CPU matmul library: default the one it trained on (its results "
+                              "repeat); auto (this machine's faster one), onednn or torch (MKL)")
     ap.add_argument("--json", type=Path, default=None, help="output file (never overwritten)")
     ap.add_argument("--video", type=Path, default=None, help="GIF of the task camera (first 4 worlds, tiled)")
     return ap
@@ -79,6 +81,8 @@ def main(argv=None) -> int:
             ap.error(f"--{name} {out} exists; choose another path (results are never overwritten)")
     if args.stochastic and args.checkpoint is None:
         ap.error("--stochastic samples a trained policy's actions: give --checkpoint")
+    if args.cpu_matmul is not None and args.checkpoint is None:
+        ap.error("--cpu-matmul chooses a SAC checkpoint's matmul library: give --checkpoint")
     payload = None
     try:
         if args.checkpoint is not None:

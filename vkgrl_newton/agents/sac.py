@@ -22,6 +22,7 @@ from rsl_rl.modules import EmpiricalNormalization
 from torch import nn
 
 from vkgrl_newton.agents.dense import ensemble_linear, ensemble_map, ensemble_stack, linear, resolve_backend
+from vkgrl_newton.agents.matmul_backend import choose_cpu_matmul
 # the configuration is plain data in a module of its own (no torch: the CLIs parse with it)
 from vkgrl_newton.agents.sac_config import (ACTIVATION_NAMES, LOG_STD_BOUNDS, SAC_PRESETS, WARMUPS,  # noqa: F401
                                            SACConfig, make_sac_config)
@@ -228,7 +229,10 @@ class SAC:
         self.generator = torch.Generator(device=self.device).manual_seed(seed)
         self.actor = Actor(obs_dim, action_dim, config, init_gen).to(self.device)
         self.critic = CriticEnsemble(obs_dim + action_dim, config, init_gen).to(self.device)
-        self.actor.matmul = self.critic.matmul = resolve_backend(config.cpu_matmul, self.device)
+        # "auto": the faster backend on this machine, kept in the user's cache (a run resolves it
+        # before, in its own cache, and records it in its config: agents/matmul_backend.py)
+        backend = choose_cpu_matmul(config, obs_dim, action_dim, self.device)
+        self.actor.matmul = self.critic.matmul = resolve_backend(backend, self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self._target_params, self._online_params = list(self.critic_target.parameters()), list(self.critic.parameters())
         self.log_alpha = torch.tensor(math.log(config.init_alpha), device=self.device, requires_grad=True)
@@ -251,6 +255,11 @@ class SAC:
         self.num_transitions = 0  # env transitions added, summed over worlds
         self.num_env_steps = 0  # batched `add` calls
         self.num_updates = 0  # critic gradient steps
+
+    @property
+    def cpu_matmul(self) -> str:
+        """The matmul library the networks run on: "onednn" or "torch" (torch's: MKL on a CPU, cuBLAS on CUDA)."""
+        return self.actor.matmul
 
     # --- acting ------------------------------------------------------------------------------
     def normalize(self, obs: torch.Tensor) -> torch.Tensor:

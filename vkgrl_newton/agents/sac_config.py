@@ -15,6 +15,7 @@ LOG_STD_BOUNDS = ("clamp", "tanh")
 ROLLOUT_POLICIES = ("prior", "search", "scripted")  # SACConfig.prior_rollouts_policy
 ACTIVATION_NAMES = ("elu", "relu", "tanh")
 MATMUL_BACKENDS = ("onednn", "torch")  # agents/dense.py
+CPU_MATMUL_CHOICES = ("auto", *MATMUL_BACKENDS)  # "auto": the faster here, agents/matmul_backend.py
 
 
 @dataclass(frozen=True)
@@ -99,16 +100,18 @@ class SACConfig:
     # critic's magnitude (detached), as TD3+BC (Fujimoto & Gu 2021) balances the two, so that one
     # weight fits any reward scale: 0.4 is their alpha = 2.5. Needs prior_ratio > 0. 0: none (thesis, RLPD).
     bc_weight: float = 0.0
-    # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel) or
-    # "torch" (MKL; its AVX2 path on AMD). Not a hyperparameter: float32 last bits differ.
-    cpu_matmul: str = "onednn"
+    # Matmul library on a CPU device (agents/dense.py): "onednn" (AVX-512 on AMD and Intel),
+    # "torch" (MKL; its AVX2 path on AMD) or "auto", the faster of the two on this machine, timed once
+    # and kept (agents/matmul_backend.py); a run records the one that ran. Not a hyperparameter:
+    # float32 last bits differ.
+    cpu_matmul: str = "auto"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_dims", tuple(int(h) for h in self.hidden_dims))
         if self.warmup not in WARMUPS:
             raise ValueError(f"SACConfig.warmup={self.warmup!r}; allowed: {list(WARMUPS)}")
-        if self.cpu_matmul not in MATMUL_BACKENDS:
-            raise ValueError(f"SACConfig.cpu_matmul={self.cpu_matmul!r}; allowed: {list(MATMUL_BACKENDS)}")
+        if self.cpu_matmul not in CPU_MATMUL_CHOICES:
+            raise ValueError(f"SACConfig.cpu_matmul={self.cpu_matmul!r}; allowed: {list(CPU_MATMUL_CHOICES)}")
         if self.activation not in ACTIVATION_NAMES:
             raise ValueError(f"SACConfig.activation={self.activation!r}; allowed: {sorted(ACTIVATION_NAMES)}")
         if self.prior_rollouts < 0:

@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..agents.sac_config import SAC_PRESETS, SACConfig, make_sac_config
+from ..agents.sac_config import CPU_MATMUL_CHOICES, SAC_PRESETS, SACConfig, make_sac_config
 from ..cli_types import (add_cache_dir_option, add_device_option, add_eager_physics_flag, add_eval_seed_option,
                          add_kmp_reference_option, add_verbose_flag, positive_int)
 from ..results.curves import CURVES_FILE
@@ -27,7 +27,7 @@ from .methods import METHODS, RUN_METHODS, Method, names
 from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, KGRL_RECIPES, NO_RECIPE, RUN_DEFAULTS
 
 __all__ = ["RunConfig", "ConfigError", "build_parser", "parse_sac_overrides", "kgrl_recipe", "RUN_FILES",
-           "search_without_z_reach", "unavailable", "explicit_args"]
+           "search_without_z_reach", "unavailable", "explicit_args", "add_cpu_matmul_option"]
 
 # what a run writes in its directory; one holding any of them holds a run (other files, such as a
 # sweep's train.log, may sit beside them)
@@ -162,6 +162,10 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "num_steps_per_env=32 --ppo algorithm.learning_rate=3e-4 (default: Isaac Lab Factory's, "
                          "agents/ppo_config.py; kgrl_ppo starts at actor.distribution_cfg.init_std=0.1)")
     add_device_option(ap)
+    add_cpu_matmul_option(ap, "the SAC methods' CPU matmul library: auto (the default: the faster one on this machine, "
+                              "timed once on the run's network shapes and kept in --cache-dir), onednn or torch (MKL). "
+                              "The one that ran is recorded in config.json, metrics.json and the checkpoint; a resumed "
+                              "run keeps its own")
     ap.add_argument("--geometry", default="primitives", choices=GEOMETRIES,
                     help="GearMesh/NutThread collision geometry (mesh: tooth/thread meshes with SDFs on CUDA; "
                          "the scripted demonstrations are recorded on it too)")
@@ -200,6 +204,11 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
     add_eager_physics_flag(ap)
     add_verbose_flag(ap)
     return ap
+
+
+def add_cpu_matmul_option(parser, help: str) -> None:
+    """--cpu-matmul {auto,onednn,torch} (agents/matmul_backend.py), None when not given."""
+    parser.add_argument("--cpu-matmul", default=None, choices=CPU_MATMUL_CHOICES, help=help)
 
 
 def parse_sac_overrides(items: list[str]) -> dict:

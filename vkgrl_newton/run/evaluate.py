@@ -30,6 +30,7 @@ def checkpoint_config(args, payload: dict, given: set[str]) -> None:
                               f"{meta['env']} {meta['action_dim']}D policy; leave --task/--env/--action-dim out "
                               "with --checkpoint")
     args.task, args.env, args.action_dim = meta["task"], meta["env"], meta["action_dim"]
+    args.cpu_matmul = evaluation_cpu_matmul(args, meta)
     args.no_time_obs = not meta["time_obs"]
     args.policy = meta["method"]
     if args.geometry is None:
@@ -45,6 +46,34 @@ def checkpoint_config(args, payload: dict, given: set[str]) -> None:
             check_run_files(meta, vae=meta["vision"]["vae"])
         except (FileNotFoundError, ValueError) as e:
             raise ConfigError(f"--checkpoint: the run's VAE: {e}") from None
+
+
+def evaluation_cpu_matmul(args, meta: dict) -> str | None:
+    """The matmul library a SAC checkpoint is evaluated on: its own (as it trained, so its results
+    repeat), or the one --cpu-matmul names ("auto": this machine's faster one); None for PPO.
+    ConfigError where it cannot run here."""
+    given = getattr(args, "cpu_matmul", None)
+    if "sac" not in meta:
+        if given is not None:
+            raise ConfigError("--cpu-matmul is for the checkpoints of the SAC methods; this one is rsl-rl PPO's")
+        return None
+    from ..agents.dense import onednn_available
+    from ..agents.matmul_backend import CHOICE_FILE, choose_cpu_matmul
+    from ..agents.sac_config import SACConfig
+
+    was = meta["sac"].get("cpu_matmul", "torch")  # (before the field existed: torch's)
+    backend = given or was
+    if backend == "auto":
+        sac = SACConfig(**{**meta["sac"], "cpu_matmul": "auto"})
+        backend = choose_cpu_matmul(sac, meta["obs_dim"], meta["action_dim"], args.device,
+                                    Path(args.cache_dir) / CHOICE_FILE, log=print)
+    if backend == "onednn" and not str(args.device).startswith("cuda") and not onednn_available():
+        import torch
+
+        raise ConfigError(f"{'--cpu-matmul onednn' if given else '--checkpoint: the run trained on oneDNN'}, which "
+                          f"this torch ({torch.__version__}) does not provide; evaluate with --cpu-matmul torch (its "
+                          "float32 last bits, and so some contact outcomes, may differ)")
+    return backend
 
 
 def evaluation_config(args, payload: dict | None) -> RunConfig:
@@ -89,8 +118,8 @@ def make_policy(args, cfg: RunConfig, built, payload: dict | None):
         else:
             from ..agents.sac import SAC, SACConfig
 
-            agent = SAC(meta["obs_dim"], meta["action_dim"], SACConfig(**meta["sac"]), device=built.env.tdev,
-                        seed=args.seed)
+            sac = SACConfig(**{**meta["sac"], "cpu_matmul": args.cpu_matmul or meta["sac"].get("cpu_matmul", "torch")})
+            agent = SAC(meta["obs_dim"], meta["action_dim"], sac, device=built.env.tdev, seed=args.seed)
         agent.load_state_dict(payload["agent"])
         torch.manual_seed(args.seed)  # PPO samples from torch's global generator, SAC from its own (seed)
         return AgentPolicy(agent, built.action_path, time_obs=meta["time_obs"], deterministic=not args.stochastic)
@@ -137,6 +166,8 @@ def evaluate_policy(args, payload: dict | None) -> dict:
                   num_envs=args.num_envs, device=env.device, solver=args.solver, geometry=args.geometry, seed=args.seed,
                   eval_seed=args.eval_seed, stochastic=args.stochastic,
                   time_obs=not args.no_time_obs, checkpoint=str(args.checkpoint) if args.checkpoint else None)
+    if hasattr(getattr(policy, "agent", None), "cpu_matmul"):  # the SAC products' library that ran
+        result["cpu_matmul"] = policy.agent.cpu_matmul
     if isinstance(policy, KMPSearchPolicy):  # what "kmp_search" meant for this result (its settings may change)
         result["search"] = dataclasses.asdict(policy.params)
     result["_frames"] = frames

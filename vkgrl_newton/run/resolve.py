@@ -57,7 +57,7 @@ def resolve(parser, argv) -> Resolved | Done:
         return Done(f"train/run.py: {reason}", 2)
     _check_given_demos(ns)
     _apply_device_and_defaults(ns, provisional, checked)
-    config = _to_config(ns, payload)
+    config = _with_cpu_matmul(ns, _to_config(ns, payload), payload)
     _check_given_vae(config)
     if payload is not None:
         _check_against_checkpoint(ns, config, payload)
@@ -93,6 +93,8 @@ def _from_checkpoint(ns, given: set[str]) -> dict | Done:
     except (FileNotFoundError, ValueError) as e:
         raise ConfigError(f"--resume: {e}") from None
     meta = payload["meta"]
+    if isinstance(meta.get("sac"), dict):  # a run from before SACConfig.cpu_matmul ran on torch's matmul
+        meta["sac"].setdefault("cpu_matmul", "torch")
     for name in _RUN_IDENTITY:
         if name not in given:
             setattr(ns, name, meta.get(name))
@@ -158,7 +160,7 @@ def _check_options(ns) -> None:
     if m.uses_ppo:  # PPO's settings are --ppo's; the SAC-loop options do not apply
         # (--no-overlap is what PPO does anyway: sweep.py passes it to every one-core trial)
         for flag, given_here in (("--sac", ns.sac), ("--overlap", ns.overlap is True),
-                                 ("--no-time-obs", ns.no_time_obs)):
+                                 ("--no-time-obs", ns.no_time_obs), ("--cpu-matmul", ns.cpu_matmul)):
             if given_here:
                 raise ConfigError(f"{flag} is for the SAC methods ({names(uses_sac=True)}), not {ns.method!r}")
         try:
@@ -175,6 +177,11 @@ def _check_options(ns) -> None:
         ns.sac_overrides = parse_sac_overrides(ns.sac)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    if ns.cpu_matmul is not None:  # the option is --sac cpu_matmul=... under another name
+        if ns.sac_overrides.get("cpu_matmul", ns.cpu_matmul) != ns.cpu_matmul:
+            raise ConfigError(f"--cpu-matmul {ns.cpu_matmul} and --sac cpu_matmul={ns.sac_overrides['cpu_matmul']} "
+                              "disagree; give one of them")
+        ns.sac_overrides["cpu_matmul"] = ns.cpu_matmul
     if ns.kgrl_recipe is not None and not m.takes_recipe:
         raise ConfigError(f"--kgrl-recipe is for the kgrl methods on SAC ({names(takes_recipe=True)}), "
                           f"not {ns.method!r}")
@@ -301,6 +308,40 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         device=ns.device, run_dir=run_dir, resume=bool(ns.resume), cache_dir=ns.cache_dir,
         progress=not ns.no_progress, overlap=ns.overlap, eager_physics=bool(ns.eager_physics),
         verbose=bool(ns.verbose), **floors)
+
+
+def _with_cpu_matmul(ns, config: RunConfig, payload: dict | None) -> RunConfig:
+    """The config with the CPU matmul library that will run (never "auto"), so that config.json,
+    metrics.json and the checkpoint record it: a resumed run's own; else "auto" resolved on this
+    machine (agents/matmul_backend.py, kept in the cache directory); a given one that cannot run
+    here is refused."""
+    if config.sac is None:
+        return config
+    from ..agents.dense import onednn_available
+    from ..agents.matmul_backend import CHOICE_FILE, choose_cpu_matmul
+
+    given = ns.sac_overrides.get("cpu_matmul")  # --cpu-matmul or --sac cpu_matmul=
+    backend = config.sac.cpu_matmul
+    if payload is not None and "sac" in payload["meta"]:  # a run continues on the products it trained with
+        backend = payload["meta"]["sac"]["cpu_matmul"]
+        if given not in (None, "auto", backend):
+            raise ConfigError(f"--resume: the run's SAC products ran on {backend}; --cpu-matmul {given} would change "
+                              "its float32 results mid-run: resume without it")
+    elif backend == "auto":
+        backend = choose_cpu_matmul(config.sac, config.obs_dim, config.action_dim, config.device,
+                                    config.cache_dir / CHOICE_FILE, log=lambda m: print(f"train/run.py: {m}"))
+    on_cpu = not str(config.device).startswith("cuda")
+    if backend == "onednn" and not on_cpu and given == "onednn":
+        raise ConfigError(f"--cpu-matmul onednn is a CPU library; on {config.device} the products run on cuBLAS: give "
+                          "auto or torch")
+    if backend == "onednn" and on_cpu and not onednn_available():
+        import torch
+
+        what = "--resume: the run's SAC products ran on oneDNN" if payload is not None else "--cpu-matmul onednn"
+        raise ConfigError(f"{what}, which this torch ({torch.__version__}) does not provide; "
+                          + ("evaluate it with train/evaluate.py --cpu-matmul torch" if payload is not None
+                             else "give auto or torch"))
+    return dataclasses.replace(config, sac=dataclasses.replace(config.sac, cpu_matmul=backend))
 
 
 def _check_given_vae(config: RunConfig) -> None:

@@ -176,6 +176,8 @@ def _finish(cfg: RunConfig, built: Built, meta: dict, loop: Loop, payload: dict 
     result = {**metrics, **meta, "device": built.env.device, "checkpoint": str(cfg.ckpt_path), "training": summary}
     result.pop("sac", None)
     result.pop("ppo", None)
+    if hasattr(built.agent, "cpu_matmul"):  # the SAC products' library that ran (config.json: the SACConfig's)
+        result["cpu_matmul"] = built.agent.cpu_matmul
     _write_results(cfg, meta, result, log)
     shown = {k: result[k] for k in ("success_rate", "mean_contact_force", "time_to_first_success_s",
                                     "mean_episode_reward") if k in result}

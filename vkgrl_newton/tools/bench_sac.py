@@ -8,9 +8,12 @@ the same process. Three variants, timed interleaved and repeated (the median is 
 a shared CPU drifts):
   ours_thesis  Table 5.3 as configured (policy_delay 4: the actor and alpha every 4th step)
   ours_delay1  policy_delay 1: the same work per step as SB3, whose SAC has no policy delay
-  ours_delay1_mkl  the same on torch's default CPU matmul (cpu_matmul="torch": MKL), CPU only
+  ours_delay1_<other>  the same on the other CPU matmul library (onednn or torch: MKL), CPU only
   sb3          stable_baselines3.SAC.train(gradient_steps, batch_size), if stable-baselines3 is
                installed (an optional extra; skipped with a message otherwise)
+`--cpu-matmul` (default auto, as run.py's) picks the library of ours_thesis and ours_delay1; "auto" is
+this machine's faster one (agents/matmul_backend.py, kept in --cache-dir), and the JSON's `cpu_matmul`
+is the one that ran, with each variant's beside its figures. `ratio_to_sb3` is ours_delay1 / sb3.
 Not identical work: ours also normalizes observations (rsl-rl EmpiricalNormalization); SB3 here
 has no VecNormalize. Default dims: the Factory 4D policy observation is 1 + 3 + 4 = 8 (thesis
 eq. 5.5-5.6: 8, 11, 24 or 27) and the action is 4D.
@@ -21,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -30,11 +32,14 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..cli_types import add_device_option
-from vkgrl_newton.agents.sac import SAC, make_sac_config
-from vkgrl_newton.cli_types import device_name
-from vkgrl_newton.runtime import device_error, parse_cli
-from vkgrl_newton.signals import run_cli
+from .._io import atomic_write_text
+from ..agents.dense import onednn_available
+from ..agents.matmul_backend import CHOICE_FILE, choose_cpu_matmul, cpu_model
+from ..agents.sac import SAC, make_sac_config
+from ..cli_types import add_cache_dir_option, add_device_option
+from ..run.config import add_cpu_matmul_option
+from ..runtime import device_error, parse_cli
+from ..signals import run_cli
 
 
 def _sync(device: torch.device) -> None:
@@ -53,13 +58,17 @@ def _random_transitions(n: int, obs_dim: int, action_dim: int, seed: int) -> dic
     }
 
 
+def bench_config(args: argparse.Namespace, policy_delay: int, cpu_matmul: str):
+    return make_sac_config("thesis", buffer_size=args.fill, learning_starts=0, batch_size=args.batch_size,
+                           hidden_dims=tuple(args.hidden), policy_delay=policy_delay, cpu_matmul=cpu_matmul)
+
+
 def make_ours(args: argparse.Namespace, data: dict[str, np.ndarray], policy_delay: int,
-              cpu_matmul: str = "onednn") -> Callable[[int], None]:
-    cfg = make_sac_config("thesis", buffer_size=args.fill, learning_starts=0, batch_size=args.batch_size,
-                          hidden_dims=tuple(args.hidden), policy_delay=policy_delay, cpu_matmul=cpu_matmul)
-    agent = SAC(args.obs_dim, args.action_dim, cfg, args.device, seed=0)
+              cpu_matmul: str) -> tuple[Callable[[int], None], str]:
+    """(n gradient steps, the matmul library that runs them)."""
+    agent = SAC(args.obs_dim, args.action_dim, bench_config(args, policy_delay, cpu_matmul), args.device, seed=0)
     agent.add(*(torch.from_numpy(data[k]) for k in ("obs", "action", "reward", "next_obs", "terminated")))
-    return lambda steps: agent.update(steps)
+    return (lambda steps: agent.update(steps)), agent.cpu_matmul
 
 
 def make_sb3(args: argparse.Namespace, data: dict[str, np.ndarray]) -> Callable[[int], None]:
@@ -107,8 +116,13 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--threads", type=int, default=None,
                    help="torch intra-op threads (default: torch's). On a shared 2-core CPU, 1 avoids OpenMP "
                         "barriers stalling whenever another process holds a core")
+    add_cpu_matmul_option(p, "ours_thesis's and ours_delay1's CPU matmul library (default auto: this machine's "
+                             "faster one, timed once and kept in --cache-dir, as run.py chooses it)")
+    add_cache_dir_option(p)
     p.add_argument("--json", type=Path, default=None)
     args = parse_cli(p, argv)
+    if args.json is not None and args.json.exists():
+        p.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
     if (why := device_error(args.device)) is not None:
         p.error(why)
     if args.threads:
@@ -116,12 +130,19 @@ def main(argv: list[str] | None = None) -> dict:
     device = torch.device(args.device)
     data = _random_transitions(args.fill, args.obs_dim, args.action_dim, seed=0)
 
-    runners: dict[str, Callable[[int], None]] = {
-        "ours_thesis": make_ours(args, data, policy_delay=4),
-        "ours_delay1": make_ours(args, data, policy_delay=1),
-    }
-    if device.type == "cpu":  # the same agent on torch's own CPU matmul (MKL), as SB3 runs
-        runners["ours_delay1_mkl"] = make_ours(args, data, policy_delay=1, cpu_matmul="torch")
+    chosen = choose_cpu_matmul(bench_config(args, 1, args.cpu_matmul or "auto"), args.obs_dim, args.action_dim,
+                               device, args.cache_dir / CHOICE_FILE, log=lambda m: print(f"[bench_sac] {m}"))
+    if chosen == "onednn" and device.type == "cpu" and not onednn_available():
+        p.error(f"--cpu-matmul onednn: this torch ({torch.__version__}) does not provide oneDNN's linear; give auto "
+                "or torch")
+    runners: dict[str, Callable[[int], None]] = {}
+    backends: dict[str, str] = {}
+    variants = [("ours_thesis", 4, chosen), ("ours_delay1", 1, chosen)]
+    if device.type == "cpu" and onednn_available():  # the same agent on the other library
+        other = "torch" if chosen == "onednn" else "onednn"
+        variants.append((f"ours_delay1_{other}", 1, other))
+    for name, delay, backend in variants:
+        runners[name], backends[name] = make_ours(args, data, policy_delay=delay, cpu_matmul=backend)
     sb3_note = None
     try:
         runners["sb3"] = make_sb3(args, data)
@@ -144,28 +165,32 @@ def main(argv: list[str] | None = None) -> dict:
     for name, ts in times.items():
         results[name] = {"grad_steps_per_s_median": args.steps / statistics.median(ts),
                          "grad_steps_per_s_best": args.steps / min(ts), "seconds": ts}
+        if name in backends:
+            results[name]["cpu_matmul"] = backends[name]
     if sb3_note:
         results["sb3"] = {"note": sb3_note}
-    cpu = platform.processor()
-    if Path("/proc/cpuinfo").exists():
-        names = [ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                 if ln.startswith("model name")]
-        cpu = names[0] if names else cpu
     report = {
-        "device": str(device), "cpu": cpu, "cpu_count": os.cpu_count(), "torch": torch.__version__,
+        "device": str(device), "cpu": cpu_model(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
         "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "obs_dim": args.obs_dim, "action_dim": args.action_dim, "batch_size": args.batch_size,
-        "hidden": args.hidden, "activation": "elu", "n_critics": 2, "cpu_matmul": "onednn", "steps_per_call": args.steps,
+        "hidden": args.hidden, "activation": "elu", "n_critics": 2, "cpu_matmul": backends["ours_delay1"],
+        "cpu_matmul_requested": args.cpu_matmul or "auto", "steps_per_call": args.steps,
         "repeats": args.repeats, "results": results,
     }
+    if "grad_steps_per_s_median" in results.get("sb3", {}):  # like for like: no policy delay on either side
+        report["ratio_to_sb3"] = (results["ours_delay1"]["grad_steps_per_s_median"]
+                                  / results["sb3"]["grad_steps_per_s_median"])
+    print(f"[bench_sac] {report['cpu']}, {report['cpu_count']} cores, torch {report['torch']}")
     for name, r in results.items():
         line = r.get("note") or (f"{r['grad_steps_per_s_median']:8.1f} grad steps/s "
-                                 f"(best {r['grad_steps_per_s_best']:.1f})")
-        print(f"{name:16s} {line}")
+                                 f"(best {r['grad_steps_per_s_best']:.1f})"
+                                 + (f"  [{r['cpu_matmul']}]" if "cpu_matmul" in r else ""))
+        print(f"{name:18s} {line}")
+    if "ratio_to_sb3" in report:
+        print(f"ours_delay1 / sb3: {report['ratio_to_sb3']:.2f}x")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2))
+        atomic_write_text(args.json, json.dumps(report, indent=2))  # never overwrites
     return report
 
 
