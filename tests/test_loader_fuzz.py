@@ -22,6 +22,8 @@ import itertools
 import json
 import math
 import shutil
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 
@@ -31,7 +33,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from scripts import load_script
+from scripts import ROOT, load_script
 
 from vkgrl_newton._io import save_checkpoint
 from vkgrl_newton.agents.checkpoint import load_checkpoint
@@ -552,3 +554,41 @@ def test_a_sweeps_run_directory(work, data):
     refused_or_valid(loader, run_dir / part)
     if part != "metrics.json":  # (with metrics.json the trial is done: the state is not read)
         refused_or_valid(lambda p: trial_status(trial), run_dir / part)
+
+
+# ----------------------------------------------------------------------------- the CLIs: one line, exit 2
+def _cli(*argv):
+    return subprocess.run([sys.executable, *map(str, argv)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+
+
+def _one_line_refusal(out, *needles):
+    assert out.returncode == 2, (out.returncode, out.stderr[-2000:])
+    assert "Traceback" not in out.stderr, out.stderr[-2000:]
+    last = out.stderr.strip().splitlines()[-1]
+    for n in needles:
+        assert str(n) in last, last
+
+
+def test_the_command_lines_refuse_damaged_files_in_one_line(work, imageset_seed):
+    """The CLI paths no other test covers: a grid, a run's curves, demonstrations to plot, an image set."""
+    grid = _fresh(work, ".json")
+    grid.write_text('{"tasks": ["PegInsert"], "envs": "factory"')  # cut short
+    _one_line_refusal(_cli("train/sweep.py", "--out", _fresh(work, ""), "--grid", grid), "--grid", grid,
+                      "not a readable grid file")
+    run = _fresh(work, "")
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"method": "sac", "seed": 0}))
+    (run / "curves.jsonl").write_text('{"transitions": 8}\n[1, 2]\n{"transitions": 16}\n')
+    _one_line_refusal(_cli("train/plot_runs.py", run, "--out", _fresh(work, ".png")), run / "curves.jsonl",
+                      "is damaged")
+    demos = _fresh(work, ".npz")
+    demos.write_bytes(npz_bytes({"s": np.zeros(3), "eta": np.zeros((3, 6)), "demo_lengths": np.array([3]),
+                                 "task": np.str_("PegInsert"), "psi_ref": np.float64(math.nan),
+                                 "action_dim": np.int64(4)}))
+    _one_line_refusal(_cli("train/plot_kmp.py", "--demos", demos, "--out", _fresh(work, "")), demos,
+                      "psi_ref must be one finite number")
+    images = _fresh(work, "")
+    shutil.copytree(imageset_seed, images)
+    (images / "state.npy").write_bytes((imageset_seed / "state.npy").read_bytes()[:100])  # truncated
+    _one_line_refusal(_cli("train/train_vae.py", "--images", images, "--out", _fresh(work, ""), "--device", "cpu"),
+                      "--images", images, "state.npy")

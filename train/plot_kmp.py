@@ -128,18 +128,18 @@ def plot_prior(demos: DemoSet, tables, lam: float, lam_c: float, path: Path) -> 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    if args.synthetic:
-        out = args.out or Path("runs/kmp_demo")
-        action_dim = args.action_dim or 6
-        demo_path = synthetic_demo_file(args.synthetic, args.num_demos, action_dim, args.seed, out)
-    else:
-        demo_path = args.demos
-        if not demo_path.exists():
-            print(f"error: demonstration file {demo_path} does not exist", file=sys.stderr)
-            return 2
-        out = args.out or demo_path.parent
-    demos = DemoSet.load(demo_path)
-    try:
+    try:  # a damaged demonstration file (given, or a synthetic one found at --out): one line, exit 2
+        if args.synthetic:
+            out = args.out or Path("runs/kmp_demo")
+            action_dim = args.action_dim or 6
+            demo_path = synthetic_demo_file(args.synthetic, args.num_demos, action_dim, args.seed, out)
+        else:
+            demo_path = args.demos
+            if not demo_path.exists():
+                print(f"error: demonstration file {demo_path} does not exist", file=sys.stderr)
+                return 2
+            out = args.out or demo_path.parent
+        demos = DemoSet.load(demo_path)
         tables, tables_path, rebuilt = load_or_fit_prior(
             demo_path, args.action_dim, args.lam, args.beta, args.l, seed=args.seed, reference=args.reference
         )

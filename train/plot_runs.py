@@ -18,7 +18,22 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from vkgrl_newton._io import one_line, read_json_object  # noqa: E402
+from vkgrl_newton.results.curves import CURVE_KEYS, read_curves  # noqa: E402
 from vkgrl_newton.results.plots import plot  # noqa: E402
+
+
+def check_run_files(run_dir: Path) -> None:
+    """ValueError in one line naming the file when a run's config.json or curves.jsonl is damaged."""
+    config = read_json_object(run_dir / "config.json", "run's config.json")
+    if not isinstance(config.get("method"), str) or not isinstance(config.get("label"), (str, type(None))):
+        raise ValueError(f"{run_dir / 'config.json'} is damaged: its method (or label) is not a name")
+    try:
+        for row in read_curves(run_dir):
+            if not all(isinstance(row[k], (int, float)) and not isinstance(row[k], bool) for k in CURVE_KEYS):
+                raise ValueError("a row holds a value that is not a number")
+    except (ValueError, TypeError, AttributeError) as e:  # (a row that is no JSON object)
+        raise ValueError(one_line(f"{run_dir / 'curves.jsonl'} is damaged ({e})")) from None
 
 
 def main(argv=None) -> int:
@@ -32,6 +47,10 @@ def main(argv=None) -> int:
     for d in args.run_dirs:
         if not (d / "config.json").exists():
             ap.error(f"{d} is not a train/run.py run directory (no config.json)")
+        try:  # what results/plots.py reads, checked before any plotting: a damaged file is one line
+            check_run_files(d)
+        except ValueError as e:
+            ap.error(str(e))
     summary = plot(args.run_dirs, args.out, args.title)
     print(json.dumps(summary, indent=2))
     print(f"wrote {args.out}")
