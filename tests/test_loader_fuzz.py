@@ -268,7 +268,7 @@ def training_payload() -> dict:
     return {"format": 1,
             "meta": {"task": "PegInsert", "method": "sac", "env": "factory", "action_dim": 4, "seed": 0,
                      "num_envs": 2, "preset": "quick", "time_obs": True, "obs_dim": 5, "sac": {"lr": 3e-4}},
-            "counters": {"transitions": 8, "env_steps": 4, "updates": 2, "episodes": 0},
+            "counters": {"transitions": 8, "env_steps": 4, "episodes": 0, "wall_s": 1.5},
             "agent": {"actor": {"0.weight": torch.randn(4, 5, generator=g), "0.bias": torch.zeros(4)},
                       "log_alpha": torch.zeros(()), "actor_optim": {"state": {}, "param_groups": [{"lr": 3e-4}]},
                       # replay data is what the env gave, not weights: NaN there is no damage
