@@ -196,9 +196,12 @@ def _check_npz_sizes(path: Path) -> None:
 def check_npy_size(f, size: int, what: str) -> None:
     """ValueError unless the .npy header at `f`'s position declares at most `size` bytes of data
     (`size`: what the file or archive member holds, header included)."""
-    version = np.lib.format.read_magic(f)
-    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-    shape, _, dtype = read_header(f)
+    try:
+        version = np.lib.format.read_magic(f)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, _, dtype = read_header(f)
+    except Exception as e:  # numpy parses the header as a Python literal: a damaged one fails in many ways (TokenError...)
+        raise ValueError(f"{what}: not a readable .npy array ({type(e).__name__}: {e})") from None
     nbytes = math.prod(shape) * dtype.itemsize
     if nbytes > size:
         raise ValueError(f"{what} declares {shape} {dtype} ({nbytes} bytes) but holds {size} bytes")
