@@ -20,7 +20,6 @@ here asks for the keys above by default.
 from __future__ import annotations
 
 import math
-import math
 from collections.abc import Sequence
 
 from .. import _io
@@ -31,7 +30,6 @@ __all__ = ["CHECKPOINT_FORMAT", "TRAINING_KEYS", "META_KEYS", "save_checkpoint",
 TRAINING_KEYS = ("format", "meta", "counters", "agent", "rng")  # what a training checkpoint holds
 # what resume and evaluate read from meta by name (run/resolve.py, run/evaluate.py): present in every run's meta
 META_KEYS = {"task": str, "method": str, "env": str, "action_dim": int, "time_obs": bool}
-COUNTERS = ("transitions", "env_steps", "updates", "episodes")  # whole numbers; "wall_s" seconds
 _KINDS = {"meta": dict, "counters": dict, "agent": dict, "rng": dict, "plan": dict}
 # replay buffers hold what the env gave, and are not weights: NaN there is not a damaged file
 _NOT_WEIGHTS = ("buffer", "prior_buffer")
