@@ -192,3 +192,23 @@ def test_a_resumed_run_keeps_its_library_and_refuses_another(tmp_path):
     old = tmp_path / "old"
     _sac_checkpoint(old, "torch", drop_field=True)  # before the field: torch's matmul, and it resumes as such
     assert _resolve(["--run-dir", str(old), "--resume", "--device", "cpu"]).config.sac.cpu_matmul == "torch"
+
+
+def test_the_choice_is_made_and_kept_for_the_threads_the_run_will_use(tmp_path, monkeypatch):
+    seen = []
+
+    def fake(cfg, obs_dim, action_dim, **kw):
+        seen.append(torch.get_num_threads())
+        return {"onednn": 1e-3, "torch": 2e-3}
+
+    monkeypatch.setattr(mb, "time_backends", fake)
+    monkeypatch.setattr(mb, "onednn_available", lambda: True)
+    before = torch.get_num_threads()
+    path = tmp_path / "cpu_matmul.json"
+    mb.choose_cpu_matmul(TINY, 8, 4, "cpu", path, threads=1)
+    assert seen == [1] and torch.get_num_threads() == before  # timed on 1 thread, the caller's count restored
+    torch.set_num_threads(1)
+    try:
+        assert mb.choice_key(TINY, 8, 4) in json.loads(path.read_text())["choices"]  # kept under 1 thread's key
+    finally:
+        torch.set_num_threads(before)

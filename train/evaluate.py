@@ -85,6 +85,9 @@ def main(argv=None) -> int:
         ap.error("--cpu-matmul chooses a SAC checkpoint's matmul library: give --checkpoint")
     payload = None
     try:
+        import torch
+
+        torch.set_num_threads(1)  # (before a --cpu-matmul auto choice: it is made for the threads that run)
         if args.checkpoint is not None:
             from vkgrl_newton.agents.checkpoint import load_checkpoint
 
@@ -96,9 +99,6 @@ def main(argv=None) -> int:
             given = {a.dest for a in ap._actions for o in a.option_strings
                      if any(w == o or w.startswith(o + "=") for w in words)}
             checkpoint_config(args, payload, given)
-        import torch
-
-        torch.set_num_threads(1)
         result = evaluate_policy(args, payload)
     except ConfigError as e:
         ap.error(str(e))

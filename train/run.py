@@ -55,7 +55,7 @@ def main(argv=None, torch_threads: int | None = None) -> int:
     and learner on two cores)."""
     ap = build_parser(__doc__)
     try:
-        resolved = resolve(ap, argv)
+        resolved = resolve(ap, argv, torch_threads=torch_threads)
     except ConfigError as e:
         ap.error(str(e))
     if isinstance(resolved, Done):

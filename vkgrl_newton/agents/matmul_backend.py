@@ -118,15 +118,27 @@ def _read(path: Path) -> dict:
 
 
 def choose_cpu_matmul(cfg: SACConfig, obs_dim: int, action_dim: int, device: torch.device | str = "cpu",
-                      choice_file: Path | str | None = None, log=None) -> str:
+                      choice_file: Path | str | None = None, log=None, threads: int | None = None) -> str:
     """The backend "auto" means here: the kept choice for this machine and these shapes, else the
     faster of the two, timed now and kept (under the file's lock: runs starting together time once).
 
-    A concrete cfg.cpu_matmul is returned as it is. `log(str)` hears a new measurement."""
+    A concrete cfg.cpu_matmul is returned as it is. `threads`: the torch intra-op threads the run
+    will use, when it sets them later (run.py: 1); the choice is made, and kept, for that count.
+    `log(str)` hears a new measurement."""
     if cfg.cpu_matmul != "auto":
         return cfg.cpu_matmul
     if torch.device(device).type != "cpu" or not onednn_available():
         return "torch"  # cuBLAS on CUDA; torch's (MKL's) matmul where this torch has no oneDNN linear
+    before = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        return _choose(cfg, obs_dim, action_dim, choice_file, log)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _choose(cfg: SACConfig, obs_dim: int, action_dim: int, choice_file, log) -> str:
     path = Path(choice_file) if choice_file is not None else default_choice_file()
     key = choice_key(cfg, obs_dim, action_dim)
     if (kept := _read(path).get(key)) is not None:

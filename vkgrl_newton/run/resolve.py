@@ -42,8 +42,10 @@ class Done:
     code: int
 
 
-def resolve(parser, argv) -> Resolved | Done:
+def resolve(parser, argv, torch_threads: int | None = None) -> Resolved | Done:
+    """torch_threads: the intra-op threads the run will train with (run.py: 1), for the CPU matmul choice."""
     ns = parser.parse_args(argv)
+    ns.torch_threads = torch_threads
     ns.sac_config, ns.ppo_cfg, payload = None, None, None
     _check_run_dir(ns)
     if ns.resume:
@@ -329,7 +331,8 @@ def _with_cpu_matmul(ns, config: RunConfig, payload: dict | None) -> RunConfig:
                               "its float32 results mid-run: resume without it")
     elif backend == "auto":
         backend = choose_cpu_matmul(config.sac, config.obs_dim, config.action_dim, config.device,
-                                    config.cache_dir / CHOICE_FILE, log=lambda m: print(f"train/run.py: {m}"))
+                                    config.cache_dir / CHOICE_FILE, log=lambda m: print(f"train/run.py: {m}"),
+                                    threads=ns.torch_threads)
     on_cpu = not str(config.device).startswith("cuda")
     if backend == "onednn" and not on_cpu and given == "onednn":
         raise ConfigError(f"--cpu-matmul onednn is a CPU library; on {config.device} the products run on cuBLAS: give "

@@ -219,6 +219,8 @@ def main(argv=None) -> int:
     from .._io import atomic_write_text
     from ..agents.matmul_backend import cpu_model
 
+    torch.set_num_threads(1)  # as run.py trains: its loop overlaps the env and the learner on two cores
+
     report = {"cpu": cpu_model(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
               "torch_threads": torch.get_num_threads(), "rows": []}
     with tempfile.TemporaryDirectory(prefix="bench_loop_") as work:
