@@ -9,13 +9,12 @@ its seeds.
 from __future__ import annotations
 
 import io
-import json
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-from vkgrl_newton._io import atomic_write
+from vkgrl_newton._io import atomic_write, read_json_object, short_repr
 from vkgrl_newton.results.curves import CURVES_FILE, read_curves
 
 PANELS = (("episode/reward", "episode reward"), ("episode/success_rate", "success rate"),
@@ -23,14 +22,36 @@ PANELS = (("episode/reward", "episode reward"), ("episode/success_rate", "succes
 PANEL_CURVE_KEYS = ("episode_reward", "success_rate", "mean_contact_force")  # the same in curves.jsonl
 
 
-def read_run(run_dir: Path) -> tuple[dict, dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """(config, {tag: (transitions, values)}) of one run directory: from its curves.jsonl, or
-    from its tensorboard scalars for a run older than curves.jsonl."""
-    run_dir = Path(run_dir)
-    config_path = run_dir / "config.json"
+# what plot() reads of a run's config.json, and the types it must have (label and time_obs may be absent)
+CONFIG_KINDS = {"task": str, "env": str, "action_dim": int, "method": str, "label": (str, type(None)),
+                "time_obs": bool}
+OPTIONAL_CONFIG_KEYS = ("label", "time_obs")
+
+
+def read_run_config(run_dir: Path) -> dict:
+    """A run's config.json; FileNotFoundError if missing, ValueError in one line naming the file if it is
+    not a UTF-8 JSON object or lacks (or mistypes) what the curves are grouped and titled by (CONFIG_KINDS)."""
+    config_path = Path(run_dir) / "config.json"
     if not config_path.exists():
         raise FileNotFoundError(f"{run_dir} is not a train/run.py run directory (no config.json)")
-    config = json.loads(config_path.read_text())
+    config = read_json_object(config_path, "run's config.json")
+    for key, kind in CONFIG_KINDS.items():
+        if key not in config:
+            if key in OPTIONAL_CONFIG_KEYS:
+                continue
+            raise ValueError(f"{config_path} is damaged: it has no {key!r}")
+        value = config[key]
+        if not isinstance(value, kind) or (isinstance(value, bool) and kind is int):
+            raise ValueError(f"{config_path} is damaged: its {key} is {short_repr(value)}")
+    return config
+
+
+def read_run(run_dir: Path) -> tuple[dict, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """(config, {tag: (transitions, values)}) of one run directory: from its curves.jsonl, or
+    from its tensorboard scalars for a run older than curves.jsonl. A damaged config.json or curves.jsonl
+    is a ValueError in one line naming the file (read_run_config, results.curves.read_curves)."""
+    run_dir = Path(run_dir)
+    config = read_run_config(run_dir)
     if (run_dir / CURVES_FILE).exists():
         rows = read_curves(run_dir)
         steps = np.array([r["transitions"] for r in rows], dtype=np.float64)
