@@ -73,11 +73,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton._io import atomic_write, atomic_write_text, current_umask, strict_json  # noqa: E402
+from vkgrl_newton._io import (atomic_write, atomic_write_text, current_umask, one_line, read_json_object,  # noqa: E402
+                              short_repr, strict_json)
 from vkgrl_newton.agents.sac_config import SACConfig  # noqa: E402
 from vkgrl_newton.results.curves import CURVES_FILE, read_curves  # noqa: E402
 from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E402
-from vkgrl_newton.results.plots import plot  # noqa: E402
+from vkgrl_newton.results.plots import plot, read_run_config  # noqa: E402
 from vkgrl_newton.results.seeds import format_t, format_tests, over_seeds, seeds_needed  # noqa: E402
 from vkgrl_newton.results.thesis import METRICS, THESIS_METHOD_NAMES, load_thesis_tables  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
@@ -102,7 +103,8 @@ DASH = "—"
 
 
 class MixedCellError(ValueError):
-    """The runs of one configuration differ in more than the seed."""
+    """The runs of one configuration differ in more than the seed, or a run's file is damaged (named):
+    the report refuses rather than leave a run out unseen."""
 
 
 # ----------------------------------------------------------------------------- reading runs
@@ -115,12 +117,19 @@ def find_runs(paths: list[Path]) -> list[Path]:
         p = Path(p)
         if not p.exists():
             raise FileNotFoundError(f"{p} does not exist")
-        candidates = [p] if (p / "metrics.json").exists() else [m.parent for m in p.rglob("metrics.json")]
-        found.update(d for d in candidates if (d / "config.json").exists())
+        candidates = [p] if (p / "metrics.json").is_file() else [m.parent for m in p.rglob("metrics.json")]
+        found.update(d for d in candidates if (d / "config.json").is_file() and (d / "metrics.json").is_file())
     kept: dict[bytes, Path] = {}
     for d in sorted(found, key=lambda d: (is_archived(d), d)):  # originals first
-        kept.setdefault((d / "config.json").read_bytes() + b"\0" + (d / "metrics.json").read_bytes(), d)
+        kept.setdefault(_read_bytes(d / "config.json") + b"\0" + _read_bytes(d / "metrics.json"), d)
     return sorted(kept.values())
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as e:  # (no permission)
+        raise _damaged(path, f"not readable ({type(e).__name__}: {e})") from None
 
 
 # A report keeps a copy of the runs it read (their config.json, metrics.json and curves) in
@@ -182,17 +191,143 @@ def _plain(value):
     return list(value) if isinstance(value, tuple) else value  # as JSON holds it
 
 
-def _read_json(path: Path) -> dict:
-    """A run's config.json or metrics.json; a damaged one (not JSON, not an object) is a MixedCellError
-    naming the file: the report refuses rather than leave a run out unseen."""
+def _damaged(path: Path, reason: str) -> MixedCellError:
+    return MixedCellError(one_line(f"{path} is damaged: {reason}; restore it or move its run directory out of "
+                                   "the report's paths", 600))
+
+
+def _read_json(path: Path, what: str = "run's JSON file") -> dict:
+    """A run's config.json or metrics.json (or a report's stats.json) as a JSON object (vkgrl_newton._io's
+    read_json_object); a damaged one (not UTF-8 JSON, not an object, bare NaN) is a MixedCellError naming
+    the file."""
     try:
-        value = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise MixedCellError(f"{path} is damaged ({type(e).__name__}: {e}); restore it or move its run directory "
-                             "out of the report's paths") from None
-    if not isinstance(value, dict):
-        raise MixedCellError(f"{path} is not a run's JSON object; restore it or move its run directory away")
-    return value
+        return read_json_object(path, what)
+    except ValueError as e:
+        reason = str(e)
+        reason = reason[len(f"{path}: "):] if reason.startswith(f"{path}: ") else reason
+        raise _damaged(path, reason) from None
+
+
+class _Damage(Exception):
+    """What is wrong inside one file (the caller names the file)."""
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _number(v, where: str, optional: bool = True):
+    """v as a finite float (None stays None where optional); _Damage otherwise."""
+    if v is None and optional:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise _Damage(f"{where} is {short_repr(v)}, not a number")
+    try:
+        x = float(v)
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        raise _Damage(f"{where} is {short_repr(v)}, not a finite number")
+    return x
+
+
+def _check_config(config: dict) -> None:
+    """What cell_key, identity and load_cells index in a run's config.json, with its type."""
+    for key in ("task", "method"):
+        if not isinstance(config.get(key), str) or not config[key]:
+            raise _Damage(f"its {key} is {short_repr(config.get(key))}, not a name" if key in config
+                          else f"it has no {key!r}")
+    if config.get("env") not in FAMILIES:
+        raise _Damage(f"its env is {short_repr(config.get('env'))}, not one of {', '.join(FAMILIES)}" if "env" in config
+                      else "it has no 'env'")
+    dim = config.get("action_dim")
+    if not _is_int(dim) or dim not in ACTION_DIMS:
+        raise _Damage(f"its action_dim is {short_repr(dim)}, not one of {', '.join(map(str, ACTION_DIMS))}"
+                      if "action_dim" in config else "it has no 'action_dim'")
+    if not _is_int(config.get("seed")):
+        raise _Damage(f"its seed is {short_repr(config.get('seed'))}, not a whole number" if "seed" in config
+                      else "it has no 'seed'")
+    if not isinstance(config.get("label"), (str, type(None))):
+        raise _Damage(f"its label is {short_repr(config['label'])}, not a name")
+    if config.get("num_envs") is not None and not (_is_int(config["num_envs"]) and config["num_envs"] > 0):
+        raise _Damage(f"its num_envs is {short_repr(config['num_envs'])}, not a whole number > 0")
+    if "sac" in config and not isinstance(config["sac"], dict):
+        raise _Damage(f"its sac is {short_repr(config['sac'])}, not an object")
+
+
+def _outcomes(result: dict, where: str) -> np.ndarray:
+    """world_outcomes(result), checked: per_episode a list of objects whose world_success are lists of
+    numbers or null, one per world, as many in each."""
+    episodes = result.get("per_episode")
+    if not isinstance(episodes, list) or not all(isinstance(e, dict) for e in episodes):
+        raise _Damage(f"{where}per_episode is {short_repr(episodes)}, not a list of objects")
+    widths = set()
+    for i, e in enumerate(episodes):
+        w = e.get("world_success")
+        if not isinstance(w, list):
+            raise _Damage(f"{where}per_episode[{i}].world_success is {short_repr(w)}, not a list")
+        for j, v in enumerate(w):
+            _number(v, f"{where}per_episode[{i}].world_success[{j}]")
+        widths.add(len(w))
+    if len(widths) > 1:
+        raise _Damage(f"{where}per_episode's world_success lists hold {sorted(widths)} worlds, not one count")
+    return world_outcomes(result)
+
+
+def _check_metrics(metrics: dict) -> None:
+    """What load_cells reads of a run's metrics.json, with its type."""
+    for m in METRICS:
+        _number(metrics.get(m), m)
+    training = metrics.get("training")
+    if training is not None and not isinstance(training, dict):
+        raise _Damage(f"its training is {short_repr(training)}, not an object")
+    _number((training or {}).get("wall_s"), "training.wall_s")
+    _number(metrics.get("wall_s"), "wall_s")
+    episodes = metrics.get("per_episode")
+    if episodes is not None and not (isinstance(episodes, list) and all(isinstance(e, dict) for e in episodes)):
+        raise _Damage(f"its per_episode is {short_repr(episodes)}, not a list of objects")
+    if "eval_seed" in metrics and all("world_success" in e for e in episodes or [{}]):
+        if not _is_int(metrics["eval_seed"]):
+            raise _Damage(f"its eval_seed is {short_repr(metrics['eval_seed'])}, not a whole number")
+        _outcomes(metrics, "")
+    if "paired_gain" in metrics:
+        gain, prior = metrics["paired_gain"], metrics.get("prior_eval")
+        if not isinstance(gain, dict) or not isinstance(gain.get("success_rate"), dict):
+            raise _Damage(f"its paired_gain is {short_repr(gain)}, not an object with success_rate")
+        _number(gain["success_rate"].get("mean"), "paired_gain.success_rate.mean")
+        if not isinstance(prior, dict):
+            raise _Damage(f"its prior_eval is {short_repr(prior)}, not an object (paired_gain needs it)")
+        _number(prior.get("success_rate"), "prior_eval.success_rate")
+        policy = _outcomes(metrics, "")
+        if _outcomes(prior, "prior_eval.").size != policy.size:
+            raise _Damage("its prior_eval and its own evaluation ran different numbers of episodes (not paired)")
+
+
+def load_run(run_dir: Path) -> tuple[dict, dict]:
+    """A finished run's (config, metrics), the one loader of the files the report reads (a run directory or a
+    report's copy of one): config.json and metrics.json must be JSON objects holding what the report indexes,
+    with its type (a metric: a finite number or null), and curves.jsonl and config.json must be what
+    results.plots reads; else a MixedCellError naming the file and what is wrong."""
+    run_dir = Path(run_dir)
+    files = {name: run_dir / name for name in ("config.json", "metrics.json")}
+    config = _read_json(files["config.json"], "run's config.json")
+    try:
+        _check_config(config)
+        read_run_config(run_dir)  # what the curves are grouped and titled by
+    except (_Damage, ValueError) as e:
+        reason = str(e).split(" is damaged: ", 1)[-1]
+        raise _damaged(files["config.json"], reason) from None
+    metrics = _read_json(files["metrics.json"], "run's metrics.json")
+    try:
+        _check_metrics(metrics)
+    except _Damage as e:
+        raise _damaged(files["metrics.json"], str(e)) from None
+    try:
+        read_curves(run_dir)  # read again for prior_gain.md and the curves: checked before anything is written
+    except ValueError as e:
+        raise MixedCellError(one_line(f"{e}; restore it or move its run directory out of the report's paths",
+                                      600)) from None
+    return config, metrics
 
 
 def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
@@ -200,7 +335,7 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
     cells: dict[tuple, list[dict]] = defaultdict(list)
     identities: dict[tuple, tuple[Path, dict]] = {}
     for d in run_dirs:
-        config, metrics = _read_json(d / "config.json"), _read_json(d / "metrics.json")
+        config, metrics = load_run(d)
         key = cell_key(config)
         ident = identity(config)
         if key in identities:
@@ -226,7 +361,8 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
             # its final evaluation's episodes, for pairing with other methods (runs from before per-world
             # outcomes and evaluation seeds were recorded have none to pair)
             row["outcomes"] = world_outcomes(metrics)
-            row["episodes_key"] = (metrics["eval_seed"], config.get("num_envs"), len(metrics["per_episode"]))
+            row["episodes_key"] = (metrics["eval_seed"], config.get("num_envs"), len(metrics["per_episode"]),
+                                   row["outcomes"].size)
         if "paired_gain" in metrics:  # a KGRL run's paired evaluation against its prior (run.py)
             row["paired"] = {"gain": metrics["paired_gain"]["success_rate"],
                              "prior_success": metrics["prior_eval"]["success_rate"],
@@ -614,6 +750,47 @@ def _base_order(method: str) -> tuple:
     return (METHOD_ORDER.index(base) if base in METHOD_ORDER else len(METHOD_ORDER)), method
 
 
+STATS_ROW_KINDS = {"prior_gain": {"task": str, "env": str, "action_dim": int, "method": str},
+                   "method_pairs": {"task": str, "env": str, "action_dim": int, "a": str, "b": str}}
+STATS_ROW_VALUES = {"prior_gain": ("seed_gains", "seed_ids"), "method_pairs": ("seed_differences", "seeds")}
+
+
+def read_stats(path: Path) -> dict:
+    """An earlier report's stats.json, as --from-stats reads it: its prior_gain and method_pairs rows (where
+    present) lists of objects with their names, D, per-seed values (numbers, null read as NaN) and seed ids
+    (whole numbers, as many as the values, or absent); else a MixedCellError naming the file."""
+    try:
+        stats = read_json_object(path, "report's stats.json")
+    except ValueError as e:
+        raise MixedCellError(one_line(f"{e}; give the directory of a report written by train/report.py", 600)) from None
+    try:
+        for block, kinds in STATS_ROW_KINDS.items():
+            rows = stats.get(block, [])
+            if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+                raise _Damage(f"its {block} is {short_repr(rows)}, not a list of objects")
+            values_key, seeds_key = STATS_ROW_VALUES[block]
+            for i, r in enumerate(rows):
+                where = f"{block}[{i}]"
+                for key, kind in kinds.items():
+                    if not isinstance(r.get(key), kind) or isinstance(r.get(key), bool):
+                        raise _Damage(f"{where}.{key} is {short_repr(r.get(key))}" if key in r else f"{where} has no {key!r}")
+                values = r.get(values_key)
+                if not isinstance(values, list):
+                    raise _Damage(f"{where}.{values_key} is {short_repr(values)}, not a list")
+                r[values_key] = [math.nan if v is None else _number(v, f"{where}.{values_key}[{j}]")
+                                 for j, v in enumerate(values)]
+                seeds = r.get(seeds_key)
+                if seeds is not None and not (isinstance(seeds, list) and len(seeds) == len(values)
+                                              and all(_is_int(k) for k in seeds)):
+                    raise _Damage(f"{where}.{seeds_key} is {short_repr(seeds)}, not {len(values)} whole numbers")
+                if block == "prior_gain":
+                    _number(r.get("prior_success"), f"{where}.prior_success")
+    except _Damage as e:
+        raise MixedCellError(one_line(f"{path} is damaged: {e}; give the directory of a report written by "
+                                      "train/report.py", 600)) from None
+    return stats
+
+
 def restat_rows(reports: list[Path], reps: int) -> list[dict]:
     """The over-seeds statistics of the per-seed values that earlier reports' stats.json hold, for reports
     whose runs are gone (no runs/ copies to read again): each prior_gain row's seed_gains, each
@@ -636,7 +813,7 @@ def restat_rows(reports: list[Path], reps: int) -> list[dict]:
         path = Path(report) / "stats.json" if Path(report).is_dir() else Path(report)
         if not path.exists():
             raise FileNotFoundError(f"{path} does not exist (--from-stats reads reports' stats.json)")
-        stats = _read_json(path)
+        stats = read_stats(path)
         name = str(path.parent)
         for r in stats.get("prior_gain", []):
             add({"kind": "gain over the prior", "task": r["task"], "env": r["env"], "action_dim": r["action_dim"],
