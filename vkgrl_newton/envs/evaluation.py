@@ -10,6 +10,7 @@ entry point (`env.step` for the SAC path, `env.step_pose` for KGRL and the scrip
 - `KMPPriorPolicy`: the KMP prior alone, zeta = 0 (KGRL with a silent policy).
 - `KMPSearchPolicy`: the prior plus a blind spiral search once the part is blocked, in a floored null
   space, from the observation alone (issue 28's baseline of what the KGRL action space holds).
+- `KMPOraclePolicy`: the same, steered by the true lateral error instead of the spiral (privileged).
 - `AgentPolicy`: a trained agent, deterministic (tanh of the mean) or sampled, on its method's path.
 
 `evaluate(env, policy, episodes)` runs whole episodes (all worlds together) and returns the
@@ -29,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 __all__ = ["Policy", "ScriptedPolicy", "ScriptedDeltaPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "KMPSearchPolicy",
-           "SearchParams", "spiral_offset", "AgentPolicy", "evaluate", "policy_observation"]
+           "KMPOraclePolicy", "SearchParams", "spiral_offset", "AgentPolicy", "evaluate", "policy_observation"]
 
 
 def policy_observation(obs, time_obs: bool = True) -> torch.Tensor:
@@ -211,19 +212,71 @@ class KMPSearchPolicy(Policy):
         on = self.since >= 0  # (no early return when none is: that would read the host every step)
         step = n.clamp(max=self.mean.shape[0] - 1)
         m = self.mean[step, :3]
-        wanted = self.centre + spiral_offset((n - self.since).to(torch.float64), p.pitch_mm * 1e-3, p.speed_mm * 1e-3)
-        want = torch.cat([wanted + p.track * (wanted - rel[:, :2]), (rel[:, 2] - p.press_mm * 1e-3).unsqueeze(-1)], -1)
+        want = torch.cat([self._search_xy(env, rel, n), (rel[:, 2] - p.press_mm * 1e-3).unsqueeze(-1)], -1)
         drop = on & ~self.found & ((self.z_blocked - rel[:, 2]) > p.settle_mm * 1e-3)
         self.held = torch.where(drop.unsqueeze(-1), want[:, :2], self.held)
         self.found |= drop
-        want = torch.where(self.found.unsqueeze(-1), torch.cat([self.held, m[:, 2:]], -1), want)
+        want = torch.where(self.found.unsqueeze(-1), torch.cat([self.held, self._settled_z(env, rel, m)], -1), want)
         zeta = torch.linalg.solve(self.gain3[step], (want - m).unsqueeze(-1)).squeeze(-1)  # (E, 3): x, y, z
         a = torch.zeros(rel.shape[0], env.num_actions, device=env.tdev)
         a[:, :3] = torch.where(on.unsqueeze(-1), (zeta / self.scale3).clamp(-1.0, 1.0), 0.0).to(a.dtype)
         return a
 
+    def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        """(E, 2) float64 x, y of the commanded eta while searching: the spiral around where the TCP was
+        blocked, led by `track` times the TCP's lag."""
+        p = self.params
+        wanted = self.centre + spiral_offset((n - self.since).to(torch.float64), p.pitch_mm * 1e-3, p.speed_mm * 1e-3)
+        return wanted + p.track * (wanted - rel[:, :2])
+
+    def _settled_z(self, env, rel: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        """(E, 1) z of the commanded eta once the part has dropped: the prior's."""
+        return m[:, 2:]
+
     def step(self, env, obs):
         return self.path.step(self.actions(env, obs))
+
+
+# issue 28's oracle (docs/results/kgrl_reach_28/search_probe.py "oracle"): the search's blocked test, press and
+# floors, settling once the TCP has dropped 1 mm, and x, y steered by the true lateral error, 1.5 x per step
+ORACLE_PARAMS = SearchParams(settle_mm=1.0)
+ORACLE_GAIN = 1.5
+
+
+class KMPOraclePolicy(KMPSearchPolicy):
+    """Privileged: KMPSearchPolicy with the spiral replaced by the true lateral error e of the held part's
+    origin from its target (env.held_pose() - env.target_base_w, x and y: no policy observes it). Once
+    blocked, the wanted x, y of eta is the TCP's own minus `gain` e, every step (issue 28, session 15: 0.820
+    on PegInsert Factory 4D, eval seed 10000). The yardstick of what the floored null space can do when
+    the information is there (tools/ceiling.py)."""
+
+    def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
+                 push_mm: float | None = None):
+        super().__init__(action_path, params or ORACLE_PARAMS)
+        self.gain = float(gain)
+        self.push_mm = push_mm
+
+    @classmethod
+    def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
+                    push_mm: float | None = None) -> "KMPOraclePolicy":
+        from .kgrl_action import KGRLActionPath
+
+        p = params or ORACLE_PARAMS
+        return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
+                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm)
+
+    def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        lateral = (env.held_pose()[0] - env.target_base_w)[:, :2].to(torch.float64)  # privileged
+        return rel[:, :2] - self.gain * lateral
+
+    def _settled_z(self, env, rel: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        """push_mm None: the prior's z (issue 28). Else privileged too: the TCP's z minus the held part's true
+        height above seated, minus push_mm (the prior's z is its demonstrations' mean seated TCP height, which
+        holds a part with a shorter grasp, or under a higher observed target, above the seat)."""
+        if self.push_mm is None:
+            return m[:, 2:]
+        height = (env.held_pose()[0] - env.target_base_w)[:, 2:].to(torch.float64)
+        return rel[:, 2:] - height - 1e-3 * self.push_mm
 
 
 class AgentPolicy(Policy):

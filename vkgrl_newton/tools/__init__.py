@@ -13,6 +13,7 @@ vkgrl_newton.gpu_check forwarder). A tool may import anything in the package.
     python -m vkgrl_newton.tools.preview          the task camera of a few worlds, tiled into one PNG
     python -m vkgrl_newton.tools.parts            the task parts alone: does the contact geometry work
     python -m vkgrl_newton.tools.kmp_param_study  the numbers behind the KMP defaults (lam, beta, l)
+    python -m vkgrl_newton.tools.ceiling          privileged and blind controllers on the paired episodes, each loss classified
 
 Importing this package loads nothing (`--help` of a tool answers without loading more than it must).
 """
