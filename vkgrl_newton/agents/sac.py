@@ -39,16 +39,21 @@ class Batch(NamedTuple):
     reward: torch.Tensor  # (B,)
     next_obs: torch.Tensor  # (B, obs_dim)
     terminated: torch.Tensor  # (B,) float, 1 = no bootstrap
+    priv: torch.Tensor | None = None  # (B, priv_dim): the critic's privileged inputs (an asymmetric critic)
+    next_priv: torch.Tensor | None = None  # (B, priv_dim)
 
 
 class ReplayBuffer:
-    """Preallocated circular buffer on the training device, filled N worlds at a time."""
+    """Preallocated circular buffer on the training device, filled N worlds at a time; with priv_dim > 0
+    it also holds each transition's privileged critic inputs (priv, next_priv)."""
 
-    FIELDS = Batch._fields
-
-    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device | str) -> None:
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, device: torch.device | str,
+                 priv_dim: int = 0) -> None:
         self.capacity, self.device = int(capacity), torch.device(device)
         shapes = {"obs": (obs_dim,), "action": (action_dim,), "reward": (), "next_obs": (obs_dim,), "terminated": ()}
+        if priv_dim:
+            shapes.update(priv=(priv_dim,), next_priv=(priv_dim,))
+        self.FIELDS = tuple(shapes)
         # empty, not zeros: a 1M-row buffer costs no time or pages until it is written
         self.data = {k: torch.empty((self.capacity, *s), device=self.device) for k, s in shapes.items()}
         self.ptr = 0  # next row to write
@@ -57,8 +62,11 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor) -> None:
-        rows = [obs, action, reward, next_obs, terminated]
+    def add(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor,
+            priv: Tensor | None = None, next_priv: Tensor | None = None) -> None:
+        rows = [obs, action, reward, next_obs, terminated, priv, next_priv][:len(self.FIELDS)]
+        if any(x is None for x in rows):
+            raise ValueError("this replay buffer holds privileged critic inputs: give priv and next_priv")
         rows = [torch.as_tensor(x, device=self.device).to(torch.float32) for x in rows]
         n = rows[0].shape[0]
         if n > self.capacity:  # only the newest `capacity` rows can survive
@@ -220,15 +228,20 @@ def soft_update_(target: list[torch.Tensor], online: list[torch.Tensor], tau: fl
 # ----------------------------------------------------------------------------- the agent
 class SAC:
     def __init__(self, obs_dim: int, action_dim: int, config: SACConfig, device: torch.device | str = "cpu",
-                 seed: int = 0) -> None:
+                 seed: int = 0, priv_dim: int = 0) -> None:
+        """priv_dim > 0: an asymmetric critic (Factory's): the critics read the actor's observation plus
+        priv_dim privileged inputs (`add(..., priv, next_priv)`), which never reach the actor."""
         self.cfg, self.device = config, torch.device(device)
-        self.obs_dim, self.action_dim = obs_dim, action_dim
+        self.obs_dim, self.action_dim, self.priv_dim = obs_dim, action_dim, int(priv_dim)
+        if self.priv_dim and config.prior_anchor:  # act() would choose between a and 0 by the critic's value
+            raise ValueError("SACConfig.prior_anchor with a privileged critic: the anchor chooses the action by "
+                             "the critic, which would bring privileged state to the policy; set prior_anchor=False")
         # No global RNG: init_gen (CPU) draws the weights; self.generator (on the device) draws
         # exploration noise, warm-up actions and replay indices, and is checkpointed for resumes.
         init_gen = torch.Generator().manual_seed(seed)
         self.generator = torch.Generator(device=self.device).manual_seed(seed)
         self.actor = Actor(obs_dim, action_dim, config, init_gen).to(self.device)
-        self.critic = CriticEnsemble(obs_dim + action_dim, config, init_gen).to(self.device)
+        self.critic = CriticEnsemble(obs_dim + self.priv_dim + action_dim, config, init_gen).to(self.device)
         # "auto": the faster backend on this machine, kept in the user's cache (a run resolves it
         # before, in its own cache, and records it in its config: agents/matmul_backend.py)
         backend = choose_cpu_matmul(config, obs_dim, action_dim, self.device)
@@ -246,10 +259,12 @@ class SAC:
         # Statistics from env batches as they arrive (never from replay samples), applied at use.
         self.normalizer = (EmpiricalNormalization(obs_dim, eps=config.obs_norm_eps).to(self.device)
                            if config.obs_normalization else None)
-        self.buffer = ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device)
+        self.priv_normalizer = (EmpiricalNormalization(self.priv_dim, eps=config.obs_norm_eps).to(self.device)
+                                if config.obs_normalization and self.priv_dim else None)
+        self.buffer = ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device, self.priv_dim)
         # the prior's own rollouts (RLPD's second buffer: the first cfg.prior_rollouts transitions),
         # sampled at cfg.prior_ratio
-        self.prior_buffer = (ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device)
+        self.prior_buffer = (ReplayBuffer(config.buffer_size, obs_dim, action_dim, self.device, self.priv_dim)
                              if config.prior_ratio > 0 else None)
         self.rewarded = False  # a transition with reward > 0 has been added (cfg.actor_after_reward)
         self.num_transitions = 0  # env transitions added, summed over worlds
@@ -264,6 +279,9 @@ class SAC:
     # --- acting ------------------------------------------------------------------------------
     def normalize(self, obs: torch.Tensor) -> torch.Tensor:
         return obs if self.normalizer is None else self.normalizer(obs)
+
+    def normalize_priv(self, priv: torch.Tensor) -> torch.Tensor:
+        return priv if self.priv_normalizer is None else self.priv_normalizer(priv)
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
@@ -293,14 +311,26 @@ class SAC:
         return self.random_actions(obs.shape[0])
 
     # --- data ----------------------------------------------------------------------------------
-    def add(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor) -> None:
-        """One batched env step of N worlds; terminated = dones & ~time_outs, next_obs = true final obs."""
+    def add(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor,
+            priv: Tensor | None = None, next_priv: Tensor | None = None) -> None:
+        """One batched env step of N worlds; terminated = dones & ~time_outs, next_obs = true final obs;
+        priv, next_priv: the privileged critic inputs of obs and next_obs (with priv_dim > 0 only)."""
         obs = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         if self.normalizer is not None:
             self.normalizer.update(obs)
-        self.buffer.add(obs, action, reward, next_obs, terminated)
+        extra = ()
+        if self.priv_dim:
+            if priv is None or next_priv is None:
+                raise ValueError(f"SAC with a privileged critic (priv_dim={self.priv_dim}): give priv and next_priv")
+            priv = torch.as_tensor(priv, dtype=torch.float32, device=self.device)
+            if self.priv_normalizer is not None:
+                self.priv_normalizer.update(priv)
+            extra = (priv, next_priv)
+        elif priv is not None:
+            raise ValueError("priv given to a SAC without a privileged critic (priv_dim=0)")
+        self.buffer.add(obs, action, reward, next_obs, terminated, *extra)
         if self.prior_buffer is not None and self.num_transitions < self.cfg.prior_rollouts:
-            self.prior_buffer.add(obs, action, reward, next_obs, terminated)
+            self.prior_buffer.add(obs, action, reward, next_obs, terminated, *extra)
         self.num_transitions += obs.shape[0]
         self.num_env_steps += 1
         if self.cfg.actor_after_reward and not self.rewarded:  # one host read per step until the first reward
@@ -316,14 +346,19 @@ class SAC:
 
     # --- losses --------------------------------------------------------------------------------
     def critic_loss(self, obs: Tensor, action: Tensor, reward: Tensor, next_obs: Tensor, terminated: Tensor,
-                    alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Soft Bellman residual on normalized obs; returns (loss, Q (n, B), target (B,))."""
+                    alpha: Tensor, critic_obs: Tensor | None = None,
+                    next_critic_obs: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Soft Bellman residual on normalized obs; returns (loss, Q (n, B), target (B,)). The actor
+        reads obs and next_obs; the critics read critic_obs and next_critic_obs (the same unless the
+        critic is privileged: obs plus the privileged inputs)."""
+        critic_obs = obs if critic_obs is None else critic_obs
+        next_critic_obs = next_obs if next_critic_obs is None else next_critic_obs
         with torch.no_grad():
             if self.cfg.prior_anchor:  # IBRL: bootstrap from the better of pi's sample and a = 0
                 mean, log_std = self.actor(next_obs)
                 u = mean + log_std.exp() * torch.randn(mean.shape, generator=self.generator, device=mean.device)
                 zero = torch.zeros_like(u)
-                q = self.critic_target(torch.cat([next_obs, next_obs]), torch.cat([torch.tanh(u), zero]))
+                q = self.critic_target(torch.cat([next_critic_obs, next_critic_obs]), torch.cat([torch.tanh(u), zero]))
                 q_pi, q_0 = q.min(dim=0).values.chunk(2)
                 next_q = torch.maximum(q_0, q_pi)
                 # the entropy term of the policy's own sample in both cases: log pi(0 | s') of a policy
@@ -332,21 +367,21 @@ class SAC:
                 next_log_pi = squashed_log_prob(u, mean, log_std)
             else:
                 next_action, next_log_pi = self.actor.sample(next_obs, self.generator)
-                next_q = self.critic_target(next_obs, next_action).min(dim=0).values
+                next_q = self.critic_target(next_critic_obs, next_action).min(dim=0).values
             target = reward + self.cfg.gamma * (1.0 - terminated) * (next_q - alpha * next_log_pi)
-        q = self.critic(obs, action)
+        q = self.critic(critic_obs, action)
         loss = 0.5 * (q - target).square().mean(dim=1).sum()  # SB3/SBX: 0.5 sum_i MSE_i
         return loss, q, target
 
-    def actor_loss(self, obs: torch.Tensor, alpha: torch.Tensor,
-                   bc_action: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def actor_loss(self, obs: torch.Tensor, alpha: torch.Tensor, bc_action: torch.Tensor | None = None,
+                   critic_obs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """E[alpha log pi(a|s) - min_i Q_i(s, a)], plus cfg.prior_reg * E|tanh(mean)|^2 (toward a = 0),
         plus, with bc_action (the actions of obs's last len(bc_action) rows, the prior buffer's),
         cfg.bc_weight * mean|Q| * E|tanh(mean) - bc_action|^2 over those rows (TD3+BC's scaling)."""
         mean, log_std = self.actor(obs)  # Actor.sample's draw, with the mean kept for the penalty
         u = mean + log_std.exp() * torch.randn(mean.shape, generator=self.generator, device=mean.device)
         log_pi = squashed_log_prob(u, mean, log_std)
-        q = self.critic(obs, torch.tanh(u), frozen=True).min(dim=0).values
+        q = self.critic(obs if critic_obs is None else critic_obs, torch.tanh(u), frozen=True).min(dim=0).values
         loss = (alpha * log_pi - q).mean()
         if self.cfg.prior_reg:
             loss = loss + self.cfg.prior_reg * torch.tanh(mean).square().sum(-1).mean()
@@ -371,17 +406,23 @@ class SAC:
         obs = self.normalize(b.obs).view(steps, bs, -1)
         next_obs = self.normalize(b.next_obs).view(steps, bs, -1)
         action, reward, term = b.action.view(steps, bs, -1), b.reward.view(steps, bs), b.terminated.view(steps, bs)
+        critic_obs, next_critic_obs = obs, next_obs
+        if self.priv_dim:  # the critics' inputs: the actor's, then the privileged ones
+            critic_obs = torch.cat([obs, self.normalize_priv(b.priv).view(steps, bs, -1)], -1)
+            next_critic_obs = torch.cat([next_obs, self.normalize_priv(b.next_priv).view(steps, bs, -1)], -1)
         critic_stats, actor_stats = [], []  # device tensors; one sync at the end
         for k in range(steps):
             alpha = self.log_alpha.detach().exp()
-            loss_q, q, _ = self.critic_loss(obs[k], action[k], reward[k], next_obs[k], term[k], alpha)
+            loss_q, q, _ = self.critic_loss(obs[k], action[k], reward[k], next_obs[k], term[k], alpha,
+                                            critic_obs[k], next_critic_obs[k])
             self.critic_optim.zero_grad(set_to_none=True)
             loss_q.backward()
             self.critic_optim.step()
             soft_update_(self._target_params, self._online_params, cfg.tau)
             critic_stats.append(torch.stack([loss_q.detach(), q.detach().mean()]))
             if self.num_updates % cfg.policy_delay == 0 and (self.rewarded or not cfg.actor_after_reward):
-                loss_pi, log_pi = self.actor_loss(obs[k], alpha, action[k, bs - n_prior:] if n_prior else None)
+                loss_pi, log_pi = self.actor_loss(obs[k], alpha, action[k, bs - n_prior:] if n_prior else None,
+                                                  critic_obs[k])
                 self.actor_optim.zero_grad(set_to_none=True)
                 loss_pi.backward()  # actor weights only: the critic is frozen in actor_loss
                 self.actor_optim.step()
@@ -413,7 +454,8 @@ class SAC:
             return self.buffer.sample(steps * batch_size, self.generator)
         online = self.buffer.sample(steps * (batch_size - n_prior), self.generator)
         prior = self.prior_buffer.sample(steps * n_prior, self.generator)
-        return Batch(*(torch.cat([o.view(steps, batch_size - n_prior, *o.shape[1:]),
+        return Batch(*(None if o is None else
+                       torch.cat([o.view(steps, batch_size - n_prior, *o.shape[1:]),
                                   p.view(steps, n_prior, *p.shape[1:])], dim=1).reshape(steps * batch_size,
                                                                                          *o.shape[1:])
                        for o, p in zip(online, prior)))
@@ -427,6 +469,7 @@ class SAC:
             "actor_optim": self.actor_optim.state_dict(), "critic_optim": self.critic_optim.state_dict(),
             "alpha_optim": self.alpha_optim.state_dict(),
             "normalizer": None if self.normalizer is None else self.normalizer.state_dict(),
+            **({"priv_normalizer": self.priv_normalizer.state_dict()} if self.priv_normalizer is not None else {}),
             "counters": (self.num_transitions, self.num_env_steps, self.num_updates),
             "generator": self.generator.get_state(), "config": dataclasses.asdict(self.cfg),
         }
@@ -449,6 +492,8 @@ class SAC:
         self.alpha_optim.load_state_dict(state["alpha_optim"])
         if self.normalizer is not None:
             self.normalizer.load_state_dict(state["normalizer"])
+        if self.priv_normalizer is not None:
+            self.priv_normalizer.load_state_dict(state["priv_normalizer"])
         self.num_transitions, self.num_env_steps, self.num_updates = state["counters"]
         self.generator.set_state(state["generator"])
         if "buffer" in state:

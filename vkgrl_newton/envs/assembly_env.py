@@ -105,6 +105,7 @@ TORQUE_LIMIT = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 FORCE_OBS_NOISE = 1.0  # N, Forge
 CONTACT_PENALTY_THRESHOLD = 7.5  # N, eq. 5.19
 SUCCESS_REWARD = 4.0
+PRIVILEGED_OBS_DIM = 16  # AssemblyEnv.privileged_state's width: the `critic` group's beyond `policy`
 # Physics steps of gripper closing at reset. Factory uses 30 (0.25 s); here the pads (Menagerie's
 # geometry, self-centring) then keep centring a peg placed off-centre by the in-hand noise for up to
 # another second: measured, the part moved up to 2.3 mm in the grasp during the first 15 control
@@ -184,6 +185,9 @@ class EnvConfig:
     randomize_dynamics: bool | None = None  # Forge's dynamics randomization; None: on for forge
     vision_latent_dim: int = 0  # 0: no vision slot; 16 for the thesis's VAE latent
     max_tilt: float = math.radians(30.0)  # 6D only: bound on the gripper axis tilt from straight down
+    # the `critic` observation group beside `policy` (rsl-rl's and Isaac Lab's convention): the policy's
+    # observation plus privileged state no policy observes (`privileged_state`), for an asymmetric critic
+    privileged_obs: bool = False
     # the physics of a control step as one captured Warp graph (sim/physics.py); False: eager
     # launches, the reference the graph is tested against (bitwise equal)
     graph: bool = True
@@ -674,7 +678,24 @@ class AssemblyEnv(VecEnv):
                 self.physics._tick("vision")
                 self._latent_version = self._state_version
             parts.append(self.vision_latent)
-        return TensorDict({"policy": torch.cat(parts, -1)}, batch_size=[self.num_envs])
+        policy = torch.cat(parts, -1)
+        if not self.cfg.privileged_obs:
+            return TensorDict({"policy": policy}, batch_size=[self.num_envs])
+        return TensorDict({"policy": policy, "critic": torch.cat([policy, self.privileged_state()], -1)},
+                          batch_size=[self.num_envs])
+
+    def privileged_state(self) -> torch.Tensor:
+        """(E, PRIVILEGED_OBS_DIM): what decides an episode and no policy observes, for an asymmetric
+        critic: the held part's position relative to its assembled pose (3, world; xy is the lateral
+        error the success test reads), the TCP relative to the noiseless target tip (3, world: the
+        policy sees it through the 1 mm observation noise), the held part's pose in the TCP frame
+        (3 + 4: the in-hand offset and tilt, drawn at reset and changed by slips) and the smoothed
+        contact force without Forge's observation noise (3, world)."""
+        tcp_p, tcp_q = self.tcp_pose()
+        held_p, held_q = self.held_pose()
+        inv = quat_conjugate(tcp_q)
+        return torch.cat([held_p - self.target_base_w, tcp_p - self.fixed_tip_w, quat_rotate(inv, held_p - tcp_p),
+                          quat_mul(inv, held_q), self.force_smoothed_w], -1)
 
     def attach_vision(self, source) -> None:
         """Fill the vision slot from `source(env) -> (E, vision_latent_dim)` (e.g. the task camera

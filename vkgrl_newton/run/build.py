@@ -54,7 +54,7 @@ def build_env(cfg: RunConfig, encoder=None, solver: str | None = None):
     env = AssemblyEnv(EnvConfig(task=cfg.task, family=cfg.env, action_dim=cfg.action_dim, num_envs=cfg.num_envs,
                                 device=cfg.device, seed=cfg.seed,
                                 vision_latent_dim=encoder.latent_dim if encoder is not None else 0,
-                                sim=sim, graph=not cfg.eager_physics))
+                                sim=sim, graph=not cfg.eager_physics, privileged_obs=cfg.privileged_critic))
     attach_encoder(env, encoder)
     return env
 
@@ -85,7 +85,7 @@ def prior_tables(cfg: RunConfig, log=print):
 
     kw = {"reference": cfg.kmp_reference, **(cfg.kmp_params or {})}
     return load_or_make_prior(cfg.task, cfg.action_dim, cfg.cache_dir, demos=cfg.demos, num_demos=cfg.num_demos,
-                              device=cfg.device, geometry=cfg.geometry, log=log, **kw)
+                              device=cfg.device, geometry=cfg.geometry, log=log, progress=cfg.progress, **kw)
 
 
 def build_agent(cfg: RunConfig, env):
@@ -96,7 +96,10 @@ def build_agent(cfg: RunConfig, env):
         return PPOAgent(env, cfg.ppo, device=str(env.tdev))
     from ..agents.sac import SAC
 
-    return SAC(cfg.obs_dim, cfg.action_dim, cfg.sac, device=env.tdev, seed=cfg.seed)
+    from ..envs.assembly_env import PRIVILEGED_OBS_DIM
+
+    return SAC(cfg.obs_dim, cfg.action_dim, cfg.sac, device=env.tdev, seed=cfg.seed,
+               priv_dim=PRIVILEGED_OBS_DIM if cfg.privileged_critic else 0)
 
 
 def build_rollout_policy(cfg: RunConfig, action_path):

@@ -54,6 +54,9 @@ class RunConfig:
     label: str | None = None
     kgrl_recipe: str | None = None  # the takes_recipe methods' (run.presets.KGRL_RECIPES), else None
     sac: SACConfig | None = None  # the SAC learner's configuration (None for PPO)
+    # an asymmetric critic (Factory's): the SAC critics also read the env's privileged state (the
+    # `critic` observation group, envs.assembly_env.AssemblyEnv.privileged_state); the actor never does
+    privileged_critic: bool = False
     ppo: dict | None = None  # rsl-rl's runner configuration (ppo methods)
     # the prior (kmp methods): your demonstrations or the scripted ones, the KMP's reference and
     # parameters (None: kmp.prior's defaults; a resumed run's own), the action path's reach floors (mm)
@@ -127,6 +130,8 @@ class RunConfig:
             meta["geometry"] = self.geometry
         if self.label:  # absent unless given, so older runs still resume
             meta["label"] = self.label
+        if self.privileged_critic:  # absent unless asked, so older runs still resume
+            meta["privileged_critic"] = True
         if self.kgrl_recipe not in (None, "base"):  # absent for base, as in runs before recipes
             meta["kgrl_recipe"] = self.kgrl_recipe
         if self.method_row.vision:
@@ -152,6 +157,12 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
     ap.add_argument("--sac", metavar="FIELD=VALUE", action="append", default=[],
                     help="override a SAC preset field, e.g. --sac batch_size=512 --sac hidden_dims=256,256 "
                          "(over the kgrl methods' --kgrl-recipe)")
+    ap.add_argument("--privileged-critic", action="store_true", default=None,
+                    help="the SAC methods: an asymmetric critic (Isaac Lab Factory's): the critics also read state no "
+                         "policy observes (the held part against its assembled pose, the noiseless target, the part's "
+                         "pose in the hand, the contact force); the actor reads the same inputs as without it. A "
+                         "deviation from the thesis (eq. 5.5). Needs --sac prior_anchor=false (the anchor picks "
+                         "actions by the critic's value)")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
                     help=f"{names(takes_recipe=True)}: the defaults under --sac and the reach floors: reach_keep_prior "
                          "(the quick preset's: beats the prior on paired episodes, docs/results.md) or base (the "

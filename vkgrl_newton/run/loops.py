@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -94,7 +95,9 @@ class Loop:
         self.bar.close()
         self.writer.close()
         at = (snapshot or {"counters": self.counters})["counters"]["transitions"]
-        self.log(f"{describe(e)}; checkpoint at {at} transitions in {self.ckpt_path} (--resume continues)")
+        # the command's one line on a stop, on stderr as every command's (its log may be stdout or silent)
+        print(f"train/run.py: {describe(e)}; checkpoint at {at} transitions in {self.ckpt_path} (--resume continues)",
+              file=sys.stderr)
         return exit_code(e)
 
 
@@ -147,7 +150,7 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
                 (next_obs, reward, dones, extras), dt = loop.timed_step(a)
             loop.env_time += dt
             _store(agent, x, a, reward, _bootstrap_inputs(next_obs, dones, extras, loop.time_obs), extras,
-                   not_terminal)
+                   not_terminal, *_privileged_inputs(obs, next_obs, dones, extras))
             obs = next_obs
             loop.after_step(extras)
             if pool is not None:
@@ -189,14 +192,31 @@ def _bootstrap_inputs(next_obs, dones, extras: dict, time_obs: bool):
     return x_next
 
 
-def _store(agent, x, a, reward, x_next, extras: dict, not_terminal) -> None:
+def _privileged_inputs(obs, next_obs, dones, extras: dict) -> tuple:
+    """(priv, next_priv) for an asymmetric critic: the `critic` group beyond the `policy` part, of obs
+    and of the state each transition bootstraps from (as _bootstrap_inputs); () without the group."""
+    if "critic" not in obs.keys():
+        return ()
+    import torch
+
+    def priv(o):
+        return o["critic"][:, o["policy"].shape[-1]:]
+
+    p_next = priv(next_obs)
+    if "final_observations" in extras:
+        p_next = torch.where(dones.unsqueeze(-1), priv(extras["final_observations"]), p_next)
+    return priv(obs), p_next
+
+
+def _store(agent, x, a, reward, x_next, extras: dict, not_terminal, *priv) -> None:
     """Episodes end by time-out only: nothing is terminal; blown-up worlds' rows are dropped (the env
-    has counted them on the host already: no extra sync on the common path)."""
+    has counted them on the host already: no extra sync on the common path). priv: (priv, next_priv)
+    of a privileged critic, or nothing."""
     if extras["log"]["/physics_resets"] == 0:
-        agent.add(x, a, reward, x_next, not_terminal)
+        agent.add(x, a, reward, x_next, not_terminal, *priv)
     else:
         keep = ~extras["physics_resets"]
-        agent.add(x[keep], a[keep], reward[keep], x_next[keep], not_terminal[keep])
+        agent.add(x[keep], a[keep], reward[keep], x_next[keep], not_terminal[keep], *(p[keep] for p in priv))
 
 
 def ppo_loop(loop: Loop, payload: dict | None) -> int | None:

@@ -27,7 +27,7 @@ __all__ = ["resolve", "Resolved", "Done", "without_file_records", "check_demos_f
 _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first checkpoint (no checkpoints/last.pt): "
                   "nothing to resume; choose another directory, or delete this one to start it again")
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
-_RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label")
+_RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic")
 
 
 @dataclass(frozen=True)
@@ -162,7 +162,8 @@ def _check_options(ns) -> None:
     if m.uses_ppo:  # PPO's settings are --ppo's; the SAC-loop options do not apply
         # (--no-overlap is what PPO does anyway: sweep.py passes it to every one-core trial)
         for flag, given_here in (("--sac", ns.sac), ("--overlap", ns.overlap is True),
-                                 ("--no-time-obs", ns.no_time_obs), ("--cpu-matmul", ns.cpu_matmul)):
+                                 ("--no-time-obs", ns.no_time_obs), ("--cpu-matmul", ns.cpu_matmul),
+                                 ("--privileged-critic", ns.privileged_critic)):
             if given_here:
                 raise ConfigError(f"{flag} is for the SAC methods ({names(uses_sac=True)}), not {ns.method!r}")
         try:
@@ -225,6 +226,10 @@ def _check_sac_options(ns, provisional: str):
                           f"methods ({names(takes_recipe=True)}), not {ns.method!r}{hint}")
     if why := search_without_z_reach(ns, checked, provisional):
         raise ConfigError(why)
+    if ns.privileged_critic and getattr(checked, "prior_anchor", False):
+        raise ConfigError("--privileged-critic with the prior anchor (the kgrl recipe's prior_anchor): the anchor "
+                          "chooses each action by the critic's value, which would bring privileged state to the "
+                          "policy; add --sac prior_anchor=false")
     return checked
 
 
@@ -303,6 +308,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
     return RunConfig(
         task=ns.task, method=ns.method, env=ns.env, action_dim=ns.action_dim, seed=ns.seed, num_envs=ns.num_envs,
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
+        privileged_critic=bool(ns.privileged_critic),
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,
         sac=ns.sac_config, ppo=ns.ppo_cfg, demos=ns.demos, num_demos=ns.num_demos, kmp_reference=reference,
         kmp_params=kmp_params, vae=ns.vae, total_steps=ns.total_steps,
