@@ -212,3 +212,12 @@ def test_the_choice_is_made_and_kept_for_the_threads_the_run_will_use(tmp_path, 
         assert mb.choice_key(TINY, 8, 4) in json.loads(path.read_text())["choices"]  # kept under 1 thread's key
     finally:
         torch.set_num_threads(before)
+
+
+def test_evaluate_refuses_cpu_matmul_without_a_checkpoint(capsys):
+    from scripts import load_script
+
+    with pytest.raises(SystemExit) as exc:
+        load_script("evaluate").main(["--cpu-matmul", "torch", "--device", "cpu"])
+    assert exc.value.code == 2
+    assert "--cpu-matmul chooses a SAC checkpoint's matmul library: give --checkpoint" in capsys.readouterr().err
