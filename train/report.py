@@ -292,12 +292,14 @@ def _check_metrics(metrics: dict) -> None:
         _outcomes(metrics, "")
     if "paired_gain" in metrics:
         gain, prior = metrics["paired_gain"], metrics.get("prior_eval")
-        if not isinstance(gain, dict) or not isinstance(gain.get("success_rate"), dict):
-            raise _Damage(f"its paired_gain is {short_repr(gain)}, not an object with success_rate")
-        _number(gain["success_rate"].get("mean"), "paired_gain.success_rate.mean")
-        if not isinstance(prior, dict):
-            raise _Damage(f"its prior_eval is {short_repr(prior)}, not an object (paired_gain needs it)")
-        _number(prior.get("success_rate"), "prior_eval.success_rate")
+        if not isinstance(gain, dict) or not isinstance(gain.get("success_rate"), dict) or \
+                "mean" not in gain["success_rate"]:
+            raise _Damage(f"its paired_gain is {short_repr(gain)}, not an object with success_rate.mean")
+        _number(gain["success_rate"]["mean"], "paired_gain.success_rate.mean")
+        if not isinstance(prior, dict) or "success_rate" not in prior:
+            raise _Damage(f"its prior_eval is {short_repr(prior)}, not an evaluation with success_rate "
+                          "(paired_gain needs it)")
+        _number(prior["success_rate"], "prior_eval.success_rate")
         policy = _outcomes(metrics, "")
         if _outcomes(prior, "prior_eval.").size != policy.size:
             raise _Damage("its prior_eval and its own evaluation ran different numbers of episodes (not paired)")
@@ -773,7 +775,8 @@ def read_stats(path: Path) -> dict:
                 where = f"{block}[{i}]"
                 for key, kind in kinds.items():
                     if not isinstance(r.get(key), kind) or isinstance(r.get(key), bool):
-                        raise _Damage(f"{where}.{key} is {short_repr(r.get(key))}" if key in r else f"{where} has no {key!r}")
+                        raise _Damage(f"{where}.{key} is {short_repr(r.get(key))}" if key in r
+                                      else f"{where} has no {key!r}")
                 values = r.get(values_key)
                 if not isinstance(values, list):
                     raise _Damage(f"{where}.{values_key} is {short_repr(values)}, not a list")
