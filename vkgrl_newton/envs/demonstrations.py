@@ -33,28 +33,28 @@ def record_demonstrations(env: AssemblyEnv, num_demos: int, seed: int = 0, max_e
     policy = ScriptedInserter(seed=seed)
     demos: list[np.ndarray] = []
     episodes = 0
-    bar = tqdm(total=num_demos, desc=f"{env.cfg.task} demonstrations", unit="demo", disable=not progress)
-    while len(demos) < num_demos and episodes < max_episodes:
-        if bool((env.episode_length_buf != 0).any()):
-            env.reset()  # a demonstration starts at s = 0 (after a time-out the env is there already)
-        policy.reset(env)
-        traj = [_eta(env)]
-        while True:
-            _, _, _, extras = env.step_pose(*policy.act(env))
-            if "episode" in extras:
-                break
-            traj.append(_eta(env))
-        # the env auto-reset the worlds at the time-out; the last pose is the one before it
-        success = env.last_episode_success_any.cpu().numpy()
-        traj = np.stack(traj, axis=1)  # (E, T, 6)
-        for w in np.nonzero(success)[0]:
-            if len(demos) < num_demos:
-                eta = traj[w].copy()
-                eta[:, 3:] = unwrap_rotation_vectors(eta[:, 3:])
-                demos.append(eta)
-                bar.update(1)
-        episodes += 1
-    bar.close()
+    # a with: closed on a stop too (else its last state is printed after the stop's one line)
+    with tqdm(total=num_demos, desc=f"{env.cfg.task} demonstrations", unit="demo", disable=not progress) as bar:
+        while len(demos) < num_demos and episodes < max_episodes:
+            if bool((env.episode_length_buf != 0).any()):
+                env.reset()  # a demonstration starts at s = 0 (after a time-out the env is there already)
+            policy.reset(env)
+            traj = [_eta(env)]
+            while True:
+                _, _, _, extras = env.step_pose(*policy.act(env))
+                if "episode" in extras:
+                    break
+                traj.append(_eta(env))
+            # the env auto-reset the worlds at the time-out; the last pose is the one before it
+            success = env.last_episode_success_any.cpu().numpy()
+            traj = np.stack(traj, axis=1)  # (E, T, 6)
+            for w in np.nonzero(success)[0]:
+                if len(demos) < num_demos:
+                    eta = traj[w].copy()
+                    eta[:, 3:] = unwrap_rotation_vectors(eta[:, 3:])
+                    demos.append(eta)
+                    bar.update(1)
+            episodes += 1
     if len(demos) < 2:
         return None, episodes
     lengths = np.array([d.shape[0] for d in demos], dtype=np.int64)

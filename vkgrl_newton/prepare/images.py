@@ -150,9 +150,10 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
     demonstrator = ScriptedInserter(seed=cfg.seed)
     gen = torch.Generator(device=env.tdev).manual_seed(cfg.seed + 1)
     n, written, episode_round = env.num_envs, 0, 0
-    bar = tqdm(total=cfg.num_images, unit="img", disable=not progress, desc=f"images {cfg.task} {cfg.resolution}px")
     t0 = time.perf_counter()
-    with writer:
+    # the bar in the with: closed on a stop too (else its last state is printed after the stop's one line)
+    with writer, tqdm(total=cfg.num_images, unit="img", disable=not progress,
+                      desc=f"images {cfg.task} {cfg.resolution}px") as bar:
         while written < cfg.num_images:
             env.reset()
             scripted = is_scripted_round(episode_round, cfg.scripted_fraction)
@@ -183,7 +184,6 @@ def collect_images(config: CollectConfig, out_dir, progress: bool = True, log=pr
                 else:
                     env.step(2.0 * torch.rand(n, cfg.action_dim, generator=gen, device=env.tdev) - 1.0)
             episode_round += 1
-    bar.close()
     wall = time.perf_counter() - t0
     log(f"{cfg.num_images} images ({episode_round} episode rounds of {n} worlds) in {wall:.0f} s "
         f"({cfg.num_images / max(wall, 1e-9):.1f} images/s) -> {out_dir}")

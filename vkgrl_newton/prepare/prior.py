@@ -14,6 +14,7 @@ from ..cache import file_sha256
 from ..kmp.demos import DemoSet
 from ..kmp.prior import KMP_BETA, KMP_L, KMP_LAMBDA, load_or_fit_prior
 from ..kmp.tables import KMPTables
+from ..signals import phase
 
 __all__ = ["load_or_make_prior", "demos_path_for", "prior_record"]
 
@@ -37,7 +38,8 @@ def demos_path_for(cache_dir, task: str, num_demos: int, seed: int, geometry: st
 def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path | None = None, num_demos: int = 16,
                        num_envs: int = 16, device: str | None = None, seed: int = 0,
                        geometry: str = "primitives", lam: float = KMP_LAMBDA, beta: float = KMP_BETA,
-                       l: float = KMP_L, reference: str = "gmr", log=print) -> tuple[KMPTables, Path]:
+                       l: float = KMP_L, reference: str = "gmr", log=print,
+                       progress: bool = True) -> tuple[KMPTables, Path]:
     """The task's KMP tables, with the demonstrations they come from recorded first if missing.
 
     demos: a demonstration npz of your own; None records `num_demos` scripted ones in the
@@ -46,7 +48,8 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
     cached beside the demonstrations (kmp.prior.load_or_fit_prior: keyed by content). Both are
     made under the demonstration file's cache lock (`vkgrl_newton.cache`): runs started together
     record and fit once. reference: the KMP's reference distribution, "gmr" (the thesis) or
-    "empirical" (kmp.tables.EmpiricalReference). Returns (tables, demonstration path).
+    "empirical" (kmp.tables.EmpiricalReference); progress: the recording's progress bar. Returns
+    (tables, demonstration path).
     """
     from ..cache import entry_lock
 
@@ -61,9 +64,13 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
             raise ValueError(f"demonstrations {path} are of task {demo_task!r}, not {task!r}")
     with entry_lock(path, log=log, what=f"the {task} demonstrations"):
         if demos is None and not path.exists():
-            _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log)
-        tables, tables_path, rebuilt = load_or_fit_prior(path, action_dim=action_dim, lam=lam, beta=beta, l=l,
-                                                         seed=seed, reference=reference)
+            with phase(f"preparing the KMP prior: recording its {num_demos} {task} demonstrations",
+                       "none is kept: the file is written whole, at the end"):
+                _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log, progress)
+        with phase("preparing the KMP prior: fitting its tables",
+                   f"the demonstrations {path.name} are kept; the tables file is written whole or not at all"):
+            tables, tables_path, rebuilt = load_or_fit_prior(path, action_dim=action_dim, lam=lam, beta=beta, l=l,
+                                                             seed=seed, reference=reference)
     log(f"KMP prior {'fitted' if rebuilt else 'loaded'}: {tables_path}")
     return tables, path
 
@@ -84,7 +91,7 @@ def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0, rea
     return record
 
 
-def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log) -> None:
+def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log, progress=True) -> None:
     from ..envs.assembly_env import AssemblyEnv, EnvConfig
     from ..envs.demonstrations import record_demonstrations
     from ..sim.scene import SimConfig
@@ -93,7 +100,7 @@ def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, lo
     env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_envs, device=device,
                                 seed=seed, sim=SimConfig(geometry=geometry)))
     demo_set, episodes = record_demonstrations(env, num_demos, seed=seed,
-                                               max_episodes=max(4, 3 * num_demos // num_envs + 2))
+                                               max_episodes=max(4, 3 * num_demos // num_envs + 2), progress=progress)
     if demo_set is None or len(demo_set.demo_lengths) < num_demos:
         got = 0 if demo_set is None else len(demo_set.demo_lengths)
         raise RuntimeError(f"the scripted demonstrator seated the part in only {got} of {episodes * num_envs} "

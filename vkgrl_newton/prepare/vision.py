@@ -4,12 +4,12 @@
 
 1. the image set (`prepare.images`): cache/<task>/images_v<demonstrator version>_r<R>_n<N>_seed<S>_<key>/
    (<key>: a hash of every collection setting and the camera, `collect.collection_key`), collected into a temporary sibling directory and renamed when complete, so an interrupted
-   collection leaves no half set under the final name (a stale temporary directory of ours is
-   removed and redone);
+   collection leaves no half set under the final name (a stop removes the temporary directory at
+   once; a stale one, of a killed run, is removed and redone by the next);
 2. the VAE (`vision.train`): cache/<task>/vae_v<version>_r<R>_n<N>_e<E>[...]_seed<S>_<key>/vae.pt (the
    image set's key: a VAE of other images is never taken for this one); a VAE run that was
    interrupted after its first epoch (checkpoints/last.pt but no metrics.json) is resumed, one
-   stopped inside its first epoch restarted;
+   stopped inside its first epoch removed at once (or, killed, by the next run) and restarted;
 3. the frozen encoder (`FrozenEncoder`) of that vae.pt, checked against task and resolution.
 Steps 1 and 2 each run under their cache entry's lock (`vkgrl_newton.cache`): runs that start
 together on an empty cache collect and train once, the others wait and reuse.
@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..cache import entry_lock
+from ..signals import phase
 from ..vision.train import train_vae
 from ..vision.vae import FrozenEncoder, VAEConfig, load_vae
 from .images import CollectConfig, collect_images, collection_key, default_image_dir
@@ -129,7 +130,13 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
                 if tmp.exists():  # our own interrupted collection (the lock says no run is at it now)
                     shutil.rmtree(tmp)
                 log(f"collecting {preset.num_images} task-camera images ({preset.resolution} px) -> {image_dir}")
-                collect_images(collect_config, tmp, progress=progress, log=log)
+                try:
+                    with phase(f"preparing the vision prerequisites: collecting the {task} image set",
+                               "the unfinished set is removed"):
+                        collect_images(collect_config, tmp, progress=progress, log=log)
+                except BaseException:  # a stop or an error: removed now, under the lock, not left for the next run
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    raise
                 tmp.rename(image_dir)
         vae_dir = default_vae_dir(cache_dir, task, preset, num_envs)
         vae_path = vae_dir / "vae.pt"
@@ -139,9 +146,18 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
                 if vae_dir.exists() and not resume:  # ours, stopped inside its first epoch: start over
                     shutil.rmtree(vae_dir)
                 log(f"{'resuming' if resume else 'training'} the denoising VAE ({preset.vae_epochs} epochs) -> {vae_dir}")
-                train_vae(image_dir, vae_dir, epochs=preset.vae_epochs, batch_size=preset.vae_batch_size,
-                          kl_weight=preset.kl_weight, config=preset.vae_config(), seed=preset.seed, device=device,
-                          resume=resume, progress=progress, log=log)
+                checkpoint = vae_dir / "checkpoints" / "last.pt"
+                try:
+                    with phase(f"preparing the vision prerequisites: training the {task} VAE",
+                               lambda: f"its last finished epoch is kept in {checkpoint}: the next run resumes it"
+                               if checkpoint.is_file() else "stopped in its first epoch: nothing is kept"):
+                        train_vae(image_dir, vae_dir, epochs=preset.vae_epochs, batch_size=preset.vae_batch_size,
+                                  kl_weight=preset.kl_weight, config=preset.vae_config(), seed=preset.seed,
+                                  device=device, resume=resume, progress=progress, log=log)
+                except BaseException:  # stopped inside its first epoch: nothing to resume, removed now
+                    if not checkpoint.is_file():
+                        shutil.rmtree(vae_dir, ignore_errors=True)
+                    raise
         vae, payload = load_vae(vae_path, expect={"task": task, "resolution": preset.resolution}, map_location=device)
         log(f"VAE loaded: {vae_path}")
     encoder = FrozenEncoder(vae, camera=payload["meta"].get("camera"))

@@ -130,6 +130,7 @@ def cached_evaluation(cache_dir, key: dict, compute, log=print, what: str = "the
     (vkgrl_newton.cache): runs that start together evaluate once. A damaged file is evaluated anew."""
     from .._io import atomic_write_text, strict_json
     from ..cache import entry_lock
+    from ..signals import phase
 
     full = {**key, "source_digest": source_digest()}
     digest = hashlib.sha256(json.dumps(full, sort_keys=True).encode()).hexdigest()
@@ -141,6 +142,7 @@ def cached_evaluation(cache_dir, key: dict, compute, log=print, what: str = "the
                 log(f"{what}: reused {path} (same inputs and sources)")
                 return stored, True
             log(f"{what}: {path} is damaged or of other inputs; evaluating anew")
-        result = compute()
+        with phase(f"computing {what}", "none of it is cached: the next run computes it anew"):
+            result = compute()
         atomic_write_text(path, strict_json({"key": full, "result": result}), overwrite=True)
     return result, False
