@@ -106,16 +106,21 @@ def make_vec_env(task: str = "PegInsert", family: str = "factory", action_dim: i
     if render_mode is not None and render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode={render_mode!r} is not allowed; allowed: None or one of {list(RENDER_MODES)}")
     cfg = gym_config(task, family, action_dim, method, num_envs=num_envs, tensors=tensors, **kwargs)
+    from ..signals import stop_exits
     from .build import build_action_path, build_encoder, build_env
 
-    if env is None:  # in run.py's order: the encoder (its preparation may take minutes), then the env
-        env = build_env(cfg, build_encoder(cfg, log=_quiet))
-    else:
-        got = (env.cfg.task, env.cfg.family, env.cfg.action_dim, env.cfg.vision_latent_dim)
-        if got != (task, family, action_dim, cfg.latent_dim):
-            raise ValueError(f"env is a {got[0]} {got[1]} {got[2]}D env with a {got[3]}-dimensional vision slot, "
-                             f"not {task} {family} {action_dim}D with {cfg.latent_dim}")
-    action_path, _ = build_action_path(cfg, env, log=_quiet)
+    # a stop while the cache's prerequisites are made (minutes on an empty cache) ends the program as a
+    # stopped run.py does: the entries whole or absent, one line, exit 130 / 143 / 129 (docs/cli.md, Signals)
+    with stop_exits("vkgrl_newton", "the env was not made; the cache keeps what was finished, make it again to "
+                    "continue"):
+        if env is None:  # in run.py's order: the encoder (its preparation may take minutes), then the env
+            env = build_env(cfg, build_encoder(cfg, log=_quiet))
+        else:
+            got = (env.cfg.task, env.cfg.family, env.cfg.action_dim, env.cfg.vision_latent_dim)
+            if got != (task, family, action_dim, cfg.latent_dim):
+                raise ValueError(f"env is a {got[0]} {got[1]} {got[2]}D env with a {got[3]}-dimensional vision "
+                                 f"slot, not {task} {family} {action_dim}D with {cfg.latent_dim}")
+        action_path, _ = build_action_path(cfg, env, log=_quiet)
     return AssemblyVectorEnv(env, action_path, tensors=tensors, run_config=cfg, render_mode=render_mode)
 
 

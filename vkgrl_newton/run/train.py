@@ -4,8 +4,10 @@
     rc = train(config)            # config: run.resolve's, or a RunConfig of your own
 
 A run directory holds config.json, curves.jsonl, tb/, checkpoints/last.pt and metrics.json
-(train/run.py's docstring). A stop signal at any phase checkpoints what was trained and returns
-the signal's exit code; a finished run's earlier result is kept beside a longer one.
+(train/run.py's docstring). A stop signal at any phase keeps what was finished (the cache's
+entries whole, the checkpoint of what was trained), prints one line on stderr naming the phase
+and what it kept (docs/cli.md, Signals) and returns the signal's exit code; a finished run's
+earlier result is kept beside a longer one.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import time
 from .._io import atomic_write_text, strict_json
 from ..results.curves import CurveWriter
 from ..results.paired import cached_evaluation, format_gain, paired_gain, seed_evaluation, world_outcomes
-from ..signals import describe, exit_code
+from ..signals import describe, exit_code, stop_line, where
 from .build import Built, build_action_path, build_agent, build_encoder, build_env, build_rollout_policy
 from .config import RunConfig
 from .loops import Loop, ppo_loop, restore_rng, rng_state, sac_loop
@@ -47,40 +49,63 @@ def train(cfg: RunConfig, payload: dict | None = None, torch_threads: int | None
                 raise SystemExit(f"train/run.py: --resume: the run's {key} was {payload['meta'][key]}, "
                                  f"now {meta.get(key)}")
     counters = {"transitions": 0, "env_steps": 0, "episodes": 0, "wall_s": 0.0}
-    if payload is not None:
-        built.agent.load_state_dict(payload["agent"])
-        counters.update(payload["counters"])
-        restore_rng(payload["rng"], built.env)
-        log(f"resumed {cfg.run_dir} at {counters['transitions']} transitions")
-    else:
-        cfg.run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(cfg.run_dir / "config.json", strict_json({**meta, **cfg.plan(), "device": cfg.device},
-                                                                   indent=2))
-    loop = _make_loop(cfg, built, meta, counters, payload, log)
-    rc = (ppo_loop if cfg.method_row.uses_ppo else sac_loop)(loop, payload)
-    if rc is not None:  # stopped by a signal: checkpointed, nothing evaluated
-        return rc
-    return _finish(cfg, built, meta, loop, payload, log)
+    made_dir = not cfg.run_dir.exists()
+    try:
+        if payload is not None:
+            built.agent.load_state_dict(payload["agent"])
+            counters.update(payload["counters"])
+            restore_rng(payload["rng"], built.env)
+            log(f"resumed {cfg.run_dir} at {counters['transitions']} transitions")
+        else:
+            cfg.run_dir.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(cfg.run_dir / "config.json", strict_json({**meta, **cfg.plan(), "device": cfg.device},
+                                                                       indent=2))
+        loop = _make_loop(cfg, built, meta, counters, payload, log)
+        rc = (ppo_loop if cfg.method_row.uses_ppo else sac_loop)(loop, payload)
+        if rc is not None:  # stopped by a signal: checkpointed, nothing evaluated
+            return rc
+        return _finish(cfg, built, meta, loop, payload, log)
+    except KeyboardInterrupt as e:  # outside the loops' and the evaluation's own handling (starting, writing)
+        if cfg.ckpt_path.is_file():
+            then = f"the checkpoint {cfg.ckpt_path} is kept (--resume continues)"
+        else:  # stopped before its first checkpoint: its files would only make the next run refuse the directory
+            _remove_unstarted_run(cfg.run_dir, made_dir)
+            then = "stopped before its first checkpoint: what it wrote is removed; run again to start it"
+        print(stop_line("train/run.py", e, then), file=sys.stderr)
+        return exit_code(e)
+
+
+def _remove_unstarted_run(run_dir, made_dir: bool) -> None:
+    """A fresh run's files (resolve refused a directory that held any of them), and its directory if it made it."""
+    import shutil
+
+    from .config import RUN_FILES
+
+    for name in RUN_FILES:
+        path = run_dir / name
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.exists():
+            path.unlink()
+    if made_dir and run_dir.is_dir() and not any(run_dir.iterdir()):
+        run_dir.rmdir()
 
 
 def _build(cfg: RunConfig, log) -> Built | int:
     """The run's objects (run.build), or the exit code when the vision prerequisites cannot be made."""
     try:
-        encoder = build_encoder(cfg, log)
-    except (FileExistsError, FileNotFoundError, ValueError) as e:
-        print(f"train/run.py: the vision prerequisites: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as e:
-        log("interrupted while preparing the image set or the VAE; run again to continue")
-        return exit_code(e)
-    try:
+        try:
+            encoder = build_encoder(cfg, log)
+        except (FileExistsError, FileNotFoundError, ValueError) as e:
+            print(f"train/run.py: the vision prerequisites: {e}", file=sys.stderr)
+            return 2
         env = build_env(cfg, encoder)
         action_path, demos_path = build_action_path(cfg, env, log)
-    except KeyboardInterrupt as e:  # (recording the demonstrations, fitting the prior: cached atomically)
-        print(f"train/run.py: {describe(e)} while preparing the KMP prior (the demonstrations and tables are "
-              "written whole or not at all); run again to continue", file=sys.stderr)
+        agent = build_agent(cfg, env)
+    except KeyboardInterrupt as e:  # the prepare phases say what they kept (signals.phase); nothing of the run yet
+        print(stop_line("train/run.py", e, "nothing of the run is written yet; run again to continue"), file=sys.stderr)
         return exit_code(e)
-    return Built(encoder, env, action_path, build_agent(cfg, env), demos_path)
+    return Built(encoder, env, action_path, agent, demos_path)
 
 
 def run_meta_with_files(cfg: RunConfig, built: Built) -> dict:
@@ -169,8 +194,8 @@ def _finish(cfg: RunConfig, built: Built, meta: dict, loop: Loop, payload: dict 
                                   counters["transitions"])
     except KeyboardInterrupt as e:  # the checkpoint holds the whole run: --resume evaluates it again
         writer.close()
-        log(f"{describe(e)} during the final evaluation; the trained checkpoint is {cfg.ckpt_path} "
-            "(--resume evaluates)")
+        print(f"train/run.py: {describe(e)} during the final evaluation{where(e)}; the trained checkpoint "
+              f"{cfg.ckpt_path} is kept (--resume evaluates)", file=sys.stderr)
         return exit_code(e)
     writer.close()
     result = {**metrics, **meta, "device": built.env.device, "checkpoint": str(cfg.ckpt_path), "training": summary}
