@@ -30,7 +30,8 @@ import torch
 from tqdm import tqdm
 
 __all__ = ["Policy", "ScriptedPolicy", "ScriptedDeltaPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "KMPSearchPolicy",
-           "KMPOraclePolicy", "SearchParams", "spiral_offset", "AgentPolicy", "evaluate", "policy_observation"]
+           "KMPOraclePolicy", "SearchParams", "spiral_offset", "AgentPolicy", "evaluate", "policy_observation",
+           "kgrl_observation"]
 
 
 def policy_observation(obs, time_obs: bool = True) -> torch.Tensor:
@@ -38,6 +39,13 @@ def policy_observation(obs, time_obs: bool = True) -> torch.Tensor:
     for the time ablation of thesis Appendix A.1 (the KMP still follows time)."""
     x = obs["policy"] if not isinstance(obs, torch.Tensor) else obs
     return x if time_obs else x[:, 1:]
+
+
+def kgrl_observation(x: torch.Tensor, action_path, final: bool = False) -> torch.Tensor:
+    """x with the KMP query's phase appended where the action path has the time action
+    (KGRLActionPath.query_phase; `final`: where each world's last step left it); x otherwise."""
+    phase = action_path.query_phase(final) if action_path is not None and hasattr(action_path, "query_phase") else None
+    return x if phase is None else torch.cat([x, phase], -1)
 
 
 class Policy(ABC):
@@ -123,7 +131,7 @@ class KMPPriorPolicy(Policy):
         self.path = action_path
 
     def step(self, env, obs):
-        return self.path.step(torch.zeros(env.num_envs, env.num_actions, device=env.tdev))
+        return self.path.step(torch.zeros(env.num_envs, self.path.action_dim, device=env.tdev))
 
 
 @dataclass(frozen=True)
@@ -287,7 +295,8 @@ class AgentPolicy(Policy):
         self.agent, self.path, self.time_obs, self.deterministic = agent, action_path, time_obs, deterministic
 
     def step(self, env, obs):
-        a = self.agent.act(policy_observation(obs, self.time_obs), deterministic=self.deterministic)
+        x = kgrl_observation(policy_observation(obs, self.time_obs), self.path)
+        a = self.agent.act(x, deterministic=self.deterministic)
         return self.path.step(a) if self.path is not None else env.step(a)
 
 

@@ -75,8 +75,8 @@ def build_action_path(cfg: RunConfig, env, log=print):
     from ..envs.kgrl_action import KGRLActionPath
 
     tables, demos_path = prior_tables(cfg, log)
-    return KGRLActionPath(tables, env, reach_floor=1e-3 * cfg.reach_floor_mm,
-                          reach_floor_z=1e-3 * cfg.reach_floor_z_mm), demos_path
+    return KGRLActionPath(tables, env, reach_floor=1e-3 * cfg.reach_floor_mm, reach_floor_z=1e-3 * cfg.reach_floor_z_mm,
+                          time_steps=cfg.kgrl_time_action), demos_path
 
 
 def prior_tables(cfg: RunConfig, log=print):
@@ -98,7 +98,7 @@ def build_agent(cfg: RunConfig, env):
 
     from ..envs.assembly_env import PRIVILEGED_OBS_DIM
 
-    return SAC(cfg.obs_dim, cfg.action_dim, cfg.sac, device=env.tdev, seed=cfg.seed,
+    return SAC(cfg.obs_dim, cfg.agent_action_dim, cfg.sac, device=env.tdev, seed=cfg.seed,
                priv_dim=PRIVILEGED_OBS_DIM if cfg.privileged_critic else 0)
 
 

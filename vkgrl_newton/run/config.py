@@ -57,6 +57,9 @@ class RunConfig:
     # an asymmetric critic (Factory's): the SAC critics also read the env's privileged state (the
     # `critic` observation group, envs.assembly_env.AssemblyEnv.privileged_state); the actor never does
     privileged_critic: bool = False
+    # KMP time as an action (the kmp methods on SAC; the thesis's future work): a_t moves the prior's query
+    # by 1 + round(k a_t) control steps per step (envs.kgrl_action); 0: none, the thesis
+    kgrl_time_action: int = 0
     ppo: dict | None = None  # rsl-rl's runner configuration (ppo methods)
     # the prior (kmp methods): your demonstrations or the scripted ones, the KMP's reference and
     # parameters (None: kmp.prior's defaults; a resumed run's own), the action path's reach floors (mm)
@@ -92,8 +95,15 @@ class RunConfig:
 
     @property
     def obs_dim(self) -> int:
-        """The policy input's width: observation_dim(), the same function the env uses, less time if ablated."""
-        return observation_dim(self.env, self.latent_dim) - (0 if self.time_obs else 1)
+        """The policy input's width: observation_dim(), the same function the env uses, less time if ablated,
+        plus the KMP query's phase with the time action."""
+        return observation_dim(self.env, self.latent_dim) - (0 if self.time_obs else 1) + (1 if self.kgrl_time_action
+                                                                                            else 0)
+
+    @property
+    def agent_action_dim(self) -> int:
+        """The learner's action width: the env's, plus the time action's a_t."""
+        return self.action_dim + (1 if self.kgrl_time_action else 0)
 
     @property
     def ckpt_path(self) -> Path:
@@ -132,6 +142,8 @@ class RunConfig:
             meta["label"] = self.label
         if self.privileged_critic:  # absent unless asked, so older runs still resume
             meta["privileged_critic"] = True
+        if self.kgrl_time_action:  # likewise
+            meta["kgrl_time_action"] = self.kgrl_time_action
         if self.kgrl_recipe not in (None, "base"):  # absent for base, as in runs before recipes
             meta["kgrl_recipe"] = self.kgrl_recipe
         if self.method_row.vision:
@@ -163,6 +175,11 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "pose in the hand, the contact force); the actor reads the same inputs as without it. A "
                          "deviation from the thesis (eq. 5.5). Needs --sac prior_anchor=false (the anchor picks "
                          "actions by the critic's value)")
+    ap.add_argument("--kgrl-time-action", type=int, default=None, metavar="K",
+                    help="kgrl, vision_kgrl: KMP time as an action (the thesis's future work, Chapter 7): one more "
+                         "action dimension a_t moves the prior's query by 1 + round(K a_t) control steps per step, so "
+                         "that a blocked part can be lifted and tried again; the query's phase becomes a policy input. "
+                         "a = 0 is still the prior. 0 (default): none, the thesis. A deviation; not yet ablated")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
                     help=f"{names(takes_recipe=True)}: the defaults under --sac and the reach floors: reach_keep_prior "
                          "(the quick preset's: beats the prior on paired episodes, docs/results.md) or base (the "

@@ -65,7 +65,8 @@ def evaluation_cpu_matmul(args, meta: dict) -> str | None:
     backend = given or was
     if backend == "auto":
         sac = SACConfig(**{**meta["sac"], "cpu_matmul": "auto"})
-        backend = choose_cpu_matmul(sac, meta["obs_dim"], meta["action_dim"], args.device,
+        backend = choose_cpu_matmul(sac, meta["obs_dim"], meta["action_dim"] + (1 if meta.get("kgrl_time_action") else 0),
+                                    args.device,
                                     Path(args.cache_dir) / CHOICE_FILE, log=print)
     if backend == "onednn" and not str(args.device).startswith("cuda") and not onednn_available():
         import torch
@@ -98,6 +99,7 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      kmp_params={k: prior[k] for k in ("lam", "beta", "l") if k in prior} or None,
                      reach_floor_mm=prior.get("reach_floor_mm", 0.0), reach_floor_z_mm=prior.get("reach_floor_z_mm", 0.0),
                      vae=Path(meta["vision"]["vae"]) if "vision" in meta else None,
+                     kgrl_time_action=meta.get("kgrl_time_action", 0),
                      sac=None, ppo=meta.get("ppo"), device=args.device, cache_dir=args.cache_dir, progress=True,
                      eager_physics=bool(args.eager_physics))
 
@@ -119,7 +121,7 @@ def make_policy(args, cfg: RunConfig, built, payload: dict | None):
             from ..agents.sac import SAC, SACConfig
 
             sac = SACConfig(**{**meta["sac"], "cpu_matmul": args.cpu_matmul or meta["sac"].get("cpu_matmul", "torch")})
-            agent = SAC(meta["obs_dim"], meta["action_dim"], sac, device=built.env.tdev, seed=args.seed)
+            agent = SAC(meta["obs_dim"], cfg.agent_action_dim, sac, device=built.env.tdev, seed=args.seed)
         agent.load_state_dict(payload["agent"])
         torch.manual_seed(args.seed)  # PPO samples from torch's global generator, SAC from its own (seed)
         return AgentPolicy(agent, built.action_path, time_obs=meta["time_obs"], deterministic=not args.stochastic)

@@ -31,6 +31,8 @@ class Loop:
                  ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int, rollout_policy=None):
         self.cfg, self.env, self.agent, self.counters = cfg, env, agent, counters
         self.step_fn = step_fn  # env.step, or the KGRL action path's step
+        # the KGRL action path whose step this is (its query phase is a policy input with the time action)
+        self.action_path = getattr(step_fn, "__self__", None)
         self.writer, self.curves, self.bar, self.log = writer, curves, bar, log
         self.checkpoint = checkpoint  # checkpoint(pending_update=False, snapshot=None)
         self.ckpt_path, self.time_obs = ckpt_path, time_obs
@@ -106,7 +108,7 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
     SACConfig says. None when done, an exit code when stopped by a signal (checkpointed)."""
     import torch
 
-    from ..envs.evaluation import policy_observation
+    from ..envs.evaluation import kgrl_observation, policy_observation
 
     cfg, env, agent, counters = loop.cfg, loop.env, loop.agent, loop.counters
     # Overlapped loop (--overlap): env step k+1 runs in a worker thread while the main thread runs the
@@ -135,10 +137,12 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
         loop.checkpoint()
     try:
         while counters["transitions"] < cfg.total_steps:
-            x = policy_observation(obs, loop.time_obs)
+            x = kgrl_observation(policy_observation(obs, loop.time_obs), loop.action_path)
             a = agent.explore(x)
             if loop.rollout_policy is not None and agent.num_transitions < agent.cfg.prior_rollouts:
                 a = loop.rollout_policy.actions(env, obs)
+                if a.shape[-1] < agent.action_dim:  # the time action's a_t = 0: the prior's own pace
+                    a = torch.cat([a, a.new_zeros(a.shape[0], agent.action_dim - a.shape[-1])], -1)
             if pool is not None:
                 future = pool.submit(loop.timed_step, a)
                 if pending_update:  # the update due after the previous step, while this one runs
@@ -149,7 +153,9 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
             else:
                 (next_obs, reward, dones, extras), dt = loop.timed_step(a)
             loop.env_time += dt
-            _store(agent, x, a, reward, _bootstrap_inputs(next_obs, dones, extras, loop.time_obs), extras,
+            x_next = kgrl_observation(_bootstrap_inputs(next_obs, dones, extras, loop.time_obs), loop.action_path,
+                                      final=True)  # (the query where each world's step left it)
+            _store(agent, x, a, reward, x_next, extras,
                    not_terminal, *_privileged_inputs(obs, next_obs, dones, extras))
             obs = next_obs
             loop.after_step(extras)

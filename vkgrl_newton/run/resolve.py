@@ -27,7 +27,8 @@ __all__ = ["resolve", "Resolved", "Done", "without_file_records", "check_demos_f
 _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first checkpoint (no checkpoints/last.pt): "
                   "nothing to resume; choose another directory, or delete this one to start it again")
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
-_RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic")
+_RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic",
+                 "kgrl_time_action")
 
 
 @dataclass(frozen=True)
@@ -188,6 +189,12 @@ def _check_options(ns) -> None:
     if ns.kgrl_recipe is not None and not m.takes_recipe:
         raise ConfigError(f"--kgrl-recipe is for the kgrl methods on SAC ({names(takes_recipe=True)}), "
                           f"not {ns.method!r}")
+    if ns.kgrl_time_action is not None:
+        if not (m.uses_kmp and m.uses_sac):
+            raise ConfigError(f"--kgrl-time-action is for the kgrl methods on SAC ({names(takes_recipe=True)}), "
+                              f"not {ns.method!r}")
+        if not 0 <= ns.kgrl_time_action <= 10:
+            raise ConfigError(f"--kgrl-time-action {ns.kgrl_time_action}: control steps per unit action, in [0, 10]")
     if ns.kmp_reference is not None and not m.uses_kmp:
         raise ConfigError(f"--kmp-reference is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
     for _, flag, value in reach_floor_flags(ns):
@@ -308,7 +315,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
     return RunConfig(
         task=ns.task, method=ns.method, env=ns.env, action_dim=ns.action_dim, seed=ns.seed, num_envs=ns.num_envs,
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
-        privileged_critic=bool(ns.privileged_critic),
+        privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,
         sac=ns.sac_config, ppo=ns.ppo_cfg, demos=ns.demos, num_demos=ns.num_demos, kmp_reference=reference,
         kmp_params=kmp_params, vae=ns.vae, total_steps=ns.total_steps,
@@ -336,7 +343,7 @@ def _with_cpu_matmul(ns, config: RunConfig, payload: dict | None) -> RunConfig:
             raise ConfigError(f"--resume: the run's SAC products ran on {backend}; --cpu-matmul {given} would change "
                               "its float32 results mid-run: resume without it")
     elif backend == "auto":
-        backend = choose_cpu_matmul(config.sac, config.obs_dim, config.action_dim, config.device,
+        backend = choose_cpu_matmul(config.sac, config.obs_dim, config.agent_action_dim, config.device,
                                     config.cache_dir / CHOICE_FILE, log=lambda m: print(f"train/run.py: {m}"),
                                     threads=ns.torch_threads)
     on_cpu = not str(config.device).startswith("cuda")
