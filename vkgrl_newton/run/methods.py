@@ -88,7 +88,7 @@ def names(**what) -> str:
 OPTION_RULES = (
     ("--sac, --overlap, --no-time-obs, --cpu-matmul, --privileged-critic", "uses_sac"),
     ("--ppo", "uses_ppo"),
-    ("--kgrl-recipe", "takes_recipe"),
+    ("--kgrl-recipe, --kgrl-time-action", "takes_recipe"),
     ("--demos, --num-demos, --kmp-reference, --kgrl-reach-floor[-z]", "uses_kmp"),
     ("--vae", "vision"),
 )

@@ -190,7 +190,7 @@ def _check_options(ns) -> None:
         raise ConfigError(f"--kgrl-recipe is for the kgrl methods on SAC ({names(takes_recipe=True)}), "
                           f"not {ns.method!r}")
     if ns.kgrl_time_action is not None:
-        if not (m.uses_kmp and m.uses_sac):
+        if not m.takes_recipe:  # (the kmp methods on SAC)
             raise ConfigError(f"--kgrl-time-action is for the kgrl methods on SAC ({names(takes_recipe=True)}), "
                               f"not {ns.method!r}")
         if not 0 <= ns.kgrl_time_action <= 10:
