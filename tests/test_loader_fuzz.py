@@ -577,7 +577,11 @@ def test_the_command_lines_refuse_damaged_files_in_one_line(work, imageset_seed)
                       "not a readable grid file")
     run = _fresh(work, "")
     run.mkdir()
-    (run / "config.json").write_text(json.dumps({"method": "sac", "seed": 0}))
+    (run / "config.json").write_text(json.dumps({"method": "sac", "seed": 0}))  # no task, env or action_dim
+    _one_line_refusal(_cli("train/plot_runs.py", run, "--out", _fresh(work, ".png")), run / "config.json",
+                      "is damaged")
+    (run / "config.json").write_text(json.dumps({"method": "sac", "seed": 0, "task": "PegInsert", "env": "factory",
+                                                 "action_dim": 4}))
     (run / "curves.jsonl").write_text('{"transitions": 8}\n[1, 2]\n{"transitions": 16}\n')
     _one_line_refusal(_cli("train/plot_runs.py", run, "--out", _fresh(work, ".png")), run / "curves.jsonl",
                       "is damaged")

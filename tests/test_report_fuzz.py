@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from scripts import ROOT, load_script
 from test_loader_fuzz import FUZZ, JSON, damaged_bytes, json_file, refused_or_valid, truncation
@@ -286,24 +286,19 @@ def test_an_earlier_reports_stats_json(report_py, tmp_path_factory, data):
         path.write_text(json.dumps(stats))
 
     def valid(_):
-        try:
-            rows = report_py.restat_rows([path], reps=2)
-        except ValueError as e:  # results/seeds.py's bug with one nonzero seed: see the xfail test below
-            assume("two or more observations" not in str(e))
-            raise
+        rows = report_py.restat_rows([path], reps=2)
         report_py.restat_markdown(rows, [path])
         strict_json(rows)
 
     refused_or_valid(report_py.read_stats, path, valid)
 
 
-@pytest.mark.xfail(strict=True, raises=ValueError, reason="results/seeds.py over_seeds: scipy's exact Wilcoxon "
-                   "(PermutationMethod) wants two nonzero seeds; with one (exact two-sided p = 1) it raises, and "
-                   "report.py ends in a traceback (method_pairs, prior_gain, --from-stats)")
 def test_seed_statistics_of_one_nonzero_seed_difference():
+    """scipy's exact Wilcoxon wants two nonzero seeds; with one, both sign patterns are as extreme (p = 1)."""
     from vkgrl_newton.results.seeds import over_seeds
 
-    assert over_seeds([0.25, 0.0], reps=2)["wilcoxon_p"] == pytest.approx(1.0)
+    s = over_seeds([0.25, 0.0], reps=2)
+    assert s["wilcoxon_p"] == 1.0 and s["wilcoxon_statistic"] == 0.0 and s["sign_p"] == 1.0
 
 
 def _mutated_row(data, row: dict) -> dict:

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vkgrl_newton._io import one_line, read_json_object  # noqa: E402
 from vkgrl_newton.results.curves import CURVE_KEYS, read_curves  # noqa: E402
-from vkgrl_newton.results.plots import plot  # noqa: E402
+from vkgrl_newton.results.plots import plot, read_run_config  # noqa: E402
 
 
 def check_run_files(run_dir: Path) -> None:
@@ -28,6 +28,7 @@ def check_run_files(run_dir: Path) -> None:
     config = read_json_object(run_dir / "config.json", "run's config.json")
     if not isinstance(config.get("method"), str) or not isinstance(config.get("label"), (str, type(None))):
         raise ValueError(f"{run_dir / 'config.json'} is damaged: its method (or label) is not a name")
+    read_run_config(run_dir)  # task, env, action_dim: what the plot's titles and groups read
     try:
         for row in read_curves(run_dir):
             if not all(isinstance(row[k], (int, float)) and not isinstance(row[k], bool) for k in CURVE_KEYS):

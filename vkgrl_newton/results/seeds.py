@@ -79,10 +79,13 @@ def over_seeds(values, confidence: float = 0.95, reps: int = 2000, seed: int = 0
         why.append(f"every seed 0: sign and Wilcoxon tests {NOT_MEASURABLE}")
     else:
         out["sign_p"] = float(stats.binomtest(out["sign_positive"], int(nonzero.size), 0.5).pvalue)
-        method = (stats.PermutationMethod(n_resamples=np.inf) if nonzero.size <= WILCOXON_EXACT_MAX_N
-                  else "auto")
-        w = stats.wilcoxon(nonzero, method=method)
-        out["wilcoxon_statistic"], out["wilcoxon_p"] = float(w.statistic), float(w.pvalue)
+        if nonzero.size == 1:  # both sign patterns are as extreme: W = 0, exact p = 1 (scipy wants two)
+            out["wilcoxon_statistic"], out["wilcoxon_p"] = 0.0, 1.0
+        else:
+            method = (stats.PermutationMethod(n_resamples=np.inf) if nonzero.size <= WILCOXON_EXACT_MAX_N
+                      else "auto")
+            w = stats.wilcoxon(nonzero, method=method)
+            out["wilcoxon_statistic"], out["wilcoxon_p"] = float(w.statistic), float(w.pvalue)
     return {**out, "not_measurable": "; ".join(why)}
 
 
