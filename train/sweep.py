@@ -14,7 +14,8 @@ trials alone, e.g. kgrl's --kgrl-recipe in a grid with sac).
 A sweep directory holds sweep.json (its grid and the arguments every trial gets) and one run
 directory of train/run.py per trial, named from the configuration alone:
 DIR/<task>_<env>_<D>d_<method>/seed<S>/ with run.py's files, the trial's log train.log (every
-attempt appended) and trial.json (state, attempts, times, the log's tail on failure).
+attempt appended, with the host and Ray node that ran it) and trial.json (state, attempts, host,
+Ray node, times, the log's tail on failure).
 
 Trials are Ray core tasks, each running one train/run.py process. Core tasks rather than Ray
 Tune: a trial is a whole training process with its own run directory, checkpointing and resume,
@@ -27,6 +28,11 @@ storage into its own layout. Restartable:
   by Ray up to --max-retries times (`retry_exceptions` names only that case: an ordinary error
   exit of run.py, e.g. a bad argument, fails the trial at once), then reported as failed with the
   tail of its log;
+- a trial whose Ray worker or node is lost (a node killed or cut off) is retried by Ray under the
+  same --max-retries, on any node with room, and resumes from its checkpoint on the shared --out;
+  trials already finished are not run again. A retry on the host where the previous attempt's
+  run.py still runs (it got SIGTERM from its dead worker and finishes its step) waits for it to
+  stop first;
 - killing the driver leaves the trials' checkpoints; starting it again continues the rest.
 Shared prerequisites (KGRL's demonstrations and KMP tables, the vision methods' image sets and
 VAEs) are made by the first trial that needs them, under vkgrl_newton/cache.py's file locks:
@@ -182,7 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--gpus-per-trial", type=float, default=0.0, help="GPU fraction per trial (CUDA; default 0)")
     ap.add_argument("--max-concurrent", type=int, default=None,
                     help="trials in flight at once (default: as many as the cluster's resources allow)")
-    ap.add_argument("--max-retries", type=int, default=2, help="restarts of a trial whose process died")
+    ap.add_argument("--max-retries", type=int, default=2,
+                    help="restarts of a trial whose process, Ray worker or node died (default 2)")
     ap.add_argument("--status", action="store_true", help="print one line per trial and exit")
     ap.add_argument("--no-progress", action="store_true")
     return ap

@@ -119,10 +119,49 @@ def _alive(pid: int) -> bool:
 
 
 # ----------------------------------------------------------------------------- one trial (a Ray task)
+def _ray_node_id() -> str | None:
+    """The Ray node running this task (None outside one): which node ran an attempt, where several
+    nodes share a host name."""
+    try:
+        import ray
+
+        return ray.get_runtime_context().get_node_id() if ray.is_initialized() else None
+    except Exception:  # (no Ray here, or no task context: the record is only informative)
+        return None
+
+
+def _runs_in(pid: int, run_dir: Path) -> bool:
+    """Process pid is alive and is a run.py of run_dir (not a later process given the same pid)."""
+    try:
+        args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return False
+    return _alive(pid) and any(a == b"--run-dir" and b == str(run_dir).encode() for a, b in zip(args, args[1:]))
+
+
+def _wait_for_previous_attempt(run_dir: Path, poll_s: float = 0.5) -> None:
+    """Wait while the trial's previous attempt's run.py still runs on this host. Ray retries a trial
+    as soon as its worker dies (a worker killed, a node lost), and that worker's run.py, told by
+    SIGTERM (_die_with_parent), first finishes its step and checkpoints; a retry started beside it
+    would resume from the checkpoint before and both would write the run directory. The same for a
+    sweep started again while its interrupted trials still stop. (Another host's process is out of
+    reach: there the node's death ends it.)"""
+    state = read_trial_state(run_dir)
+    pid = state.get("pid")
+    if state.get("state") not in ("running", "interrupted") or state.get("host") != socket.gethostname() or not pid:
+        return
+    if _runs_in(pid, run_dir):
+        with open(run_dir / "train.log", "a") as log:
+            log.write(f"=== waiting for attempt {state.get('attempts')}'s run.py (pid {pid}) to stop\n")
+        while _runs_in(pid, run_dir):
+            time.sleep(poll_s)
+
+
 def run_trial(trial: dict, run_py: str, run_args: list[str], submitted_unix: float) -> dict:
     """Run (or resume) one trial's train/run.py to the end; the body of the Ray task."""
     run_dir = Path(trial["run_dir"])
     run_dir.mkdir(parents=True, exist_ok=True)
+    _wait_for_previous_attempt(run_dir)
     if (run_dir / "metrics.json").exists():
         return {"name": trial["name"], "skipped": True}
     resume = (run_dir / "checkpoints" / "last.pt").exists()
@@ -135,11 +174,12 @@ def run_trial(trial: dict, run_py: str, run_args: list[str], submitted_unix: flo
     cmd = trial_command(trial, run_py, run_args, resume)
     attempts = int(read_trial_state(run_dir).get("attempts", 0)) + 1
     started = time.time()
-    write_trial_state(run_dir, state="running", attempts=attempts, host=socket.gethostname(),
+    node = _ray_node_id()
+    write_trial_state(run_dir, state="running", attempts=attempts, host=socket.gethostname(), node=node,
                       submitted_unix=submitted_unix, started_unix=started, resumed=resume, command=cmd)
     with open(run_dir / "train.log", "a") as log:
-        log.write(f"=== attempt {attempts} on {socket.gethostname()} at {time.strftime('%Y-%m-%d %H:%M:%S')}: "
-                  f"{' '.join(cmd)}\n")
+        where = socket.gethostname() + (f" (Ray node {node})" if node else "")
+        log.write(f"=== attempt {attempts} on {where} at {time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(cmd)}\n")
         log.flush()
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=Path(run_py).parents[1],
                                 start_new_session=True, preexec_fn=_die_with_parent)
