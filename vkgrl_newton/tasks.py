@@ -74,10 +74,11 @@ def geometry_error(task: str, geometry: str) -> str | None:
     return None
 
 
-def observation_dim(family: str, vision_latent_dim: int = 0) -> int:
+def observation_dim(family: str, vision_latent_dim: int = 0, tcp_velocity: bool = False, force: bool = False) -> int:
     """Thesis eq. 5.5: s_t (1), TCP position in the target frame (3), TCP quaternion (4), Forge's
-    smoothed force (3), the vision latent."""
-    return 8 + (3 if family == "forge" else 0) + vision_latent_dim
+    smoothed force (3), the vision latent; with the deviations of issue 40 the force in Factory too
+    (`force`, 3) and the TCP's linear and angular velocity (`tcp_velocity`, 6)."""
+    return 8 + (3 if family == "forge" or force else 0) + (6 if tcp_velocity else 0) + vision_latent_dim
 
 TASKS: dict[str, TaskSpec] = {
     "PegInsert": TaskSpec(

@@ -79,7 +79,7 @@ from ..rotations import euler_xyz_from_quat, quat_conjugate, quat_exp, quat_from
 from ..runtime import torch_device
 from ..sim.physics import ActionBuffers, ControllerBuffers, ForceBuffers, PhysicsStepper
 from ..sim.scene import ARM_DOFS, FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS, Scene, SimConfig, build_scene
-from ..tasks import ACTION_DIMS, FAMILIES, TARGET_OBS_NOISE, get_task, observation_dim  # noqa: F401  (observation_dim: a name of this module too)
+from ..tasks import ACTION_DIMS, CONTROL_DT, FAMILIES, TARGET_OBS_NOISE, get_task, observation_dim  # noqa: F401  (observation_dim: a name of this module too)
 
 __all__ = ["EnvConfig", "AssemblyEnv", "FAMILIES", "ACTION_DIMS", "TASK_GEOMETRY"]
 
@@ -188,6 +188,11 @@ class EnvConfig:
     # the `critic` observation group beside `policy` (rsl-rl's and Isaac Lab's convention): the policy's
     # observation plus privileged state no policy observes (`privileged_state`), for an asymmetric critic
     privileged_obs: bool = False
+    # what an actor needs to find a hole it cannot see (issue 40; deviations from eq. 5.5, off in the thesis):
+    # the TCP's linear and angular velocity (world; Factory's finite differences over the control step)
+    # and, in Factory, the smoothed contact force with Forge's noise (the KGRL paper's actor reads the wrench)
+    tcp_velocity_obs: bool = False
+    force_obs: bool = False
     # the physics of a control step as one captured Warp graph (sim/physics.py); False: eager
     # launches, the reference the graph is tested against (bitwise equal)
     graph: bool = True
@@ -203,6 +208,8 @@ class EnvConfig:
             raise ValueError(f"action_dim must be one of {ACTION_DIMS}, got {self.action_dim!r}")
         if not isinstance(self.num_envs, int) or self.num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {self.num_envs!r}")
+        if self.force_obs and self.family == "forge":
+            raise ValueError("force_obs is Factory's: the Forge observation holds the force already")
         if self.vision_latent_dim < 0:
             raise ValueError(f"vision_latent_dim must be >= 0, got {self.vision_latent_dim!r}")
         if not 0.0 < self.max_tilt < math.pi / 2:
@@ -295,7 +302,10 @@ class AssemblyEnv(VecEnv):
         self._state_version, self._latent_version = 0, -1  # the latent is refreshed when they differ
         self.physics_resets_total = 0
         self.ik_failures_total, self._ik_failures_step = 0, 0  # reset IK that did not converge (_reset_worlds)
-        self.obs_dim = observation_dim(cfg.family, cfg.vision_latent_dim)
+        self.obs_dim = observation_dim(cfg.family, cfg.vision_latent_dim, cfg.tcp_velocity_obs, cfg.force_obs)
+        # TCP velocity by finite differences (tcp_velocity_obs): the pose one control step ago
+        self.tcp_linvel_w, self.tcp_angvel_w = z(E, 3), z(E, 3)
+        self.prev_tcp_pos_w, self.prev_tcp_quat_w = z(E, 3), z(E, 4)
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(self.obs_dim,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(cfg.action_dim,), dtype=np.float32)
 
@@ -590,6 +600,9 @@ class AssemblyEnv(VecEnv):
         )
         self.episode_length_buf[mask] = 0
         self.step_index[mask] = 0
+        tcp_p, tcp_q = self.tcp_pose()  # (after the grasp settled) an episode starts at rest
+        self.prev_tcp_pos_w[mask], self.prev_tcp_quat_w[mask] = tcp_p[mask], tcp_q[mask]
+        self.tcp_linvel_w[mask], self.tcp_angvel_w[mask] = 0.0, 0.0
         self.success[mask] = False
         self.first_success_step[mask] = -1
         self.episode_reward[mask] = 0.0
@@ -668,9 +681,11 @@ class AssemblyEnv(VecEnv):
         tcp_p, tcp_q = self.tcp_pose()
         s = (self.episode_length_buf.float() / self.max_episode_length).unsqueeze(-1)
         parts = [s, tcp_p - self.target_frame_pos_w, tcp_q]
-        if self.cfg.family == "forge":
+        if self.cfg.family == "forge" or self.cfg.force_obs:
             noise = FORCE_OBS_NOISE * torch.randn(self.num_envs, 3, device=self.tdev, generator=self.generator)
             parts.append(self.force_smoothed_w + noise)
+        if self.cfg.tcp_velocity_obs:
+            parts += [self.tcp_linvel_w, self.tcp_angvel_w]
         if self.cfg.vision_latent_dim:
             if self.vision_source is not None and self._latent_version != self._state_version:
                 self.physics._tick(None)  # profiled (throughput's split): the camera and encoder as "vision"
@@ -797,6 +812,11 @@ class AssemblyEnv(VecEnv):
             self.dead_zone.copy_(torch.where(redraw, fresh, self.dead_zone))
         held_p, _ = self.held_pose()
         tcp_p, tcp_q = self.tcp_pose()  # once per step: the nut's success test and Forge's penalty read it
+        if self.cfg.tcp_velocity_obs:  # Factory's ee_linvel_fd / ee_angvel_fd over the control step
+            self.tcp_linvel_w.copy_((tcp_p - self.prev_tcp_pos_w) / CONTROL_DT)
+            self.tcp_angvel_w.copy_(quat_log(quat_mul(tcp_q, quat_conjugate(self.prev_tcp_quat_w))) / CONTROL_DT)
+            self.prev_tcp_pos_w.copy_(tcp_p)
+            self.prev_tcp_quat_w.copy_(tcp_q)
         d = held_p - self.target_base_w
         success = (d[:, :2].norm(dim=-1) < self.geometry.success_xy) & (d[:, 2] < self.geometry.success_z)
         if self.geometry.success_tcp_yaw_max is not None:

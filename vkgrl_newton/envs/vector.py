@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from ..tasks import ACTION_DIMS, CONTROL_DT, FAMILIES, TASKS, geometry_error, observation_dim
+from ..tasks import ACTION_DIMS, CONTROL_DT, FAMILIES, TASKS, geometry_error
 
 __all__ = ["AssemblyVectorEnv", "AssemblySingleEnv", "TENSORS", "RENDER_MODES", "check_vector_kwargs"]
 
@@ -87,7 +87,7 @@ class AssemblyVectorEnv(VectorEnv):
         self._step = self.action_path.step if self.action_path is not None else env.step
         self.tensors = tensors
         self.num_envs = env.num_envs
-        obs_dim = observation_dim(env.cfg.family, env.cfg.vision_latent_dim)
+        obs_dim = env.obs_dim
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (env.cfg.action_dim,), np.float32)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)

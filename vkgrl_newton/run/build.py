@@ -54,7 +54,8 @@ def build_env(cfg: RunConfig, encoder=None, solver: str | None = None):
     env = AssemblyEnv(EnvConfig(task=cfg.task, family=cfg.env, action_dim=cfg.action_dim, num_envs=cfg.num_envs,
                                 device=cfg.device, seed=cfg.seed,
                                 vision_latent_dim=encoder.latent_dim if encoder is not None else 0,
-                                sim=sim, graph=not cfg.eager_physics, privileged_obs=cfg.privileged_critic))
+                                sim=sim, graph=not cfg.eager_physics, privileged_obs=cfg.privileged_critic,
+                                tcp_velocity_obs=cfg.tcp_velocity_obs, force_obs=cfg.force_obs))
     attach_encoder(env, encoder)
     return env
 

@@ -60,6 +60,10 @@ class RunConfig:
     # KMP time as an action (the kmp methods on SAC; the thesis's future work): a_t moves the prior's query
     # by 1 + round(k a_t) control steps per step (envs.kgrl_action); 0: none, the thesis
     kgrl_time_action: int = 0
+    # the policy's extra inputs (envs.assembly_env.EnvConfig; deviations from eq. 5.5): the TCP's velocity,
+    # and in Factory the smoothed contact force (Forge's observation has it)
+    tcp_velocity_obs: bool = False
+    force_obs: bool = False
     ppo: dict | None = None  # rsl-rl's runner configuration (ppo methods)
     # the prior (kmp methods): your demonstrations or the scripted ones, the KMP's reference and
     # parameters (None: kmp.prior's defaults; a resumed run's own), the action path's reach floors (mm)
@@ -97,8 +101,8 @@ class RunConfig:
     def obs_dim(self) -> int:
         """The policy input's width: observation_dim(), the same function the env uses, less time if ablated,
         plus the KMP query's phase with the time action."""
-        return observation_dim(self.env, self.latent_dim) - (0 if self.time_obs else 1) + (1 if self.kgrl_time_action
-                                                                                            else 0)
+        return (observation_dim(self.env, self.latent_dim, self.tcp_velocity_obs, self.force_obs)
+                - (0 if self.time_obs else 1) + (1 if self.kgrl_time_action else 0))
 
     @property
     def agent_action_dim(self) -> int:
@@ -144,6 +148,9 @@ class RunConfig:
             meta["privileged_critic"] = True
         if self.kgrl_time_action:  # likewise
             meta["kgrl_time_action"] = self.kgrl_time_action
+        for name in ("tcp_velocity_obs", "force_obs"):  # likewise
+            if getattr(self, name):
+                meta[name] = True
         if self.kgrl_recipe not in (None, "base"):  # absent for base, as in runs before recipes
             meta["kgrl_recipe"] = self.kgrl_recipe
         if self.method_row.vision:
@@ -175,6 +182,12 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "pose in the hand, the contact force); the actor reads the same inputs as without it. A "
                          "deviation from the thesis (eq. 5.5). Needs --sac prior_anchor=false (the anchor picks "
                          "actions by the critic's value)")
+    ap.add_argument("--tcp-velocity-obs", action="store_true", default=None,
+                    help="the policy also observes the TCP's linear and angular velocity (world; Factory's finite "
+                         "differences over the control step). A deviation from eq. 5.5; not yet ablated")
+    ap.add_argument("--force-obs", action="store_true", default=None,
+                    help="Factory: the policy also observes the smoothed contact force (with Forge's 1 N noise; the "
+                         "KGRL paper's actor reads the wrench). A deviation from eq. 5.5; not yet ablated")
     ap.add_argument("--kgrl-time-action", type=int, default=None, metavar="K",
                     help="kgrl, vision_kgrl: KMP time as an action (the thesis's future work, Chapter 7): one more "
                          "action dimension a_t moves the prior's query by 1 + round(K a_t) control steps per step, so "

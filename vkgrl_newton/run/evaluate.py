@@ -99,7 +99,8 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      kmp_params={k: prior[k] for k in ("lam", "beta", "l") if k in prior} or None,
                      reach_floor_mm=prior.get("reach_floor_mm", 0.0), reach_floor_z_mm=prior.get("reach_floor_z_mm", 0.0),
                      vae=Path(meta["vision"]["vae"]) if "vision" in meta else None,
-                     kgrl_time_action=meta.get("kgrl_time_action", 0),
+                     kgrl_time_action=meta.get("kgrl_time_action", 0), tcp_velocity_obs=meta.get("tcp_velocity_obs", False),
+                     force_obs=meta.get("force_obs", False),
                      sac=None, ppo=meta.get("ppo"), device=args.device, cache_dir=args.cache_dir, progress=True,
                      eager_physics=bool(args.eager_physics))
 
