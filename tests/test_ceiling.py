@@ -169,3 +169,30 @@ def test_oracle_policy_steers_by_the_true_lateral_error(wp_cpu):
                 np.testing.assert_allclose(eta[1], want1, atol=1e-6)
                 checked += 1
     assert policy.found.tolist() == [False, True] and checked > 40
+
+
+def test_oracle_takes_over_a_part_that_went_in_unblocked(wp_cpu):
+    """inside_mm: a world whose part is found inside (true height above seated under inside_mm) without having been
+    blocked is settled at once: x, y held at the TCP's less 1.5 e, z the TCP's less the true height less push_mm."""
+    from vkgrl_newton.envs.evaluation import KMPOraclePolicy
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import fit_prior
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
+    env = fake_env(2)
+    policy = KMPOraclePolicy.with_floors(tables, env, push_mm=3.0, inside_mm=24.25)
+    mean, gain = policy.path.tables.mean.numpy(), policy.path.tables.gain.numpy()
+    n = 110
+    env.episode_length_buf.fill_(n)
+    d = np.array([[0.05e-3, -0.02e-3, 2.0e-3], [0.0, 0.0, 24.5e-3]])  # world 0 inside 2 mm above its seat, 1 above
+    env.held_p[:] = env.target_base_w + torch.from_numpy(d).float()
+    obs = torch.zeros(2, 8)
+    obs[:, 1:4] = torch.from_numpy(mean[[n, n], :3]).float()
+    a = policy.actions(env, {"policy": obs}).double().numpy()
+    assert policy.found.tolist() == [True, False] and np.all(a[1] == 0)
+    rel = obs[0, 1:4].double().numpy()
+    dd = (env.held_p - env.target_base_w)[0].double().numpy()
+    want = np.r_[rel[:2] - 1.5 * dd[:2], rel[2] - dd[2] - 3e-3]
+    eta = mean[n, :3] + gain[n][:3, :3] @ (a[0, :3] * env.task.w_pos)
+    assert np.all(np.abs(a[0, :3]) < 1)
+    np.testing.assert_allclose(eta, want, atol=1e-6)

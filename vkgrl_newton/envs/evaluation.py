@@ -259,19 +259,34 @@ class KMPOraclePolicy(KMPSearchPolicy):
     the information is there (tools/ceiling.py)."""
 
     def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
-                 push_mm: float | None = None):
+                 push_mm: float | None = None, inside_mm: float | None = None):
         super().__init__(action_path, params or ORACLE_PARAMS)
         self.gain = float(gain)
         self.push_mm = push_mm
+        self.inside_mm = inside_mm
 
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
-                    push_mm: float | None = None) -> "KMPOraclePolicy":
+                    push_mm: float | None = None, inside_mm: float | None = None) -> "KMPOraclePolicy":
         from .kgrl_action import KGRLActionPath
 
         p = params or ORACLE_PARAMS
         return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
-                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm)
+                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm, inside_mm)
+
+    def actions(self, env, obs) -> torch.Tensor:
+        """inside_mm (privileged): a part that went in without being blocked (its true height above seated below
+        inside_mm) is taken over as if it had dropped while searching: x, y held where they are (less gain e),
+        z `_settled_z` (with push_mm: pressed to the seat; the prior's seat alone holds some parts above it)."""
+        if self.inside_mm is not None:
+            n = env.episode_length_buf.long()
+            rel = policy_observation(obs)[:, 1:4].to(torch.float64)
+            d = (env.held_pose()[0] - env.target_base_w).to(torch.float64)
+            new = (n > 0) & (self.since < 0) & (d[:, 2] < 1e-3 * self.inside_mm)
+            self.since = torch.where(new, n, self.since)
+            self.found |= new
+            self.held = torch.where(new.unsqueeze(-1), rel[:, :2] - self.gain * d[:, :2], self.held)
+        return super().actions(env, obs)
 
     def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         lateral = (env.held_pose()[0] - env.target_base_w)[:, :2].to(torch.float64)  # privileged

@@ -8,7 +8,8 @@ Controllers (Factory, 4D, the same seeded episodes: results.paired.seed_evaluati
 every run's final evaluation):
 - `scripted`: the privileged scripted demonstrator (envs/scripted.py) through `step_pose`;
 - `oracle`: the privileged oracle in the floored null space (envs.evaluation.KMPOraclePolicy): steered by the
-  true lateral error once blocked, and once the part drops, pressed ORACLE_PUSH_MM below its true seat;
+  true lateral error once blocked, and once the part drops (or is found inside the fixed part without having been
+  blocked), pressed ORACLE_PUSH_MM below its true seat;
 - `oracle28`: issue 28's oracle as measured there (after the drop, the prior's z);
 - `prior`: the KMP prior, a = 0 (train/evaluate.py --policy kmp_prior);
 - `prior_push`: the prior with its seat lowered PRIOR_PUSH_MM (blind; what a demonstration of the push would give);
@@ -331,8 +332,9 @@ def make_controller(name: str, env, tables, task: str, seed: int = 0):
         return KMPOraclePolicy.with_floors(tables, env, oracle_params(task))
     if name == "oracle":  # the ceiling's: settles at the search's 0.3 mm drop, then presses the part ORACLE_PUSH_MM
         # below its seat (privileged z too)
+        g = CEILING_GEOMETRY[task]
         return KMPOraclePolicy.with_floors(tables, env, replace(oracle_params(task), settle_mm=0.3),
-                                           push_mm=ORACLE_PUSH_MM)
+                                           push_mm=ORACLE_PUSH_MM, inside_mm=1e3 * (g.rest_height - g.entry_depth))
     if name == "prior_push":
         return KMPPriorPolicy(KGRLActionPath(pushed_prior(tables, PRIOR_PUSH_MM * 1e-3), env))
     raise ValueError(f"controller must be one of {CONTROLLERS}, got {name!r}")
