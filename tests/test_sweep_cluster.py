@@ -84,7 +84,9 @@ while step < STEPS:
         deadline = time.time() + 600
         while not stop and time.time() < deadline and not (ctl / "release").exists():
             time.sleep(0.1)
-        if stop:  # its Ray worker died with the node: finish the step run.py is in, then stop
+        if stop:  # SIGTERM from its dead Ray worker (_die_with_parent): finish the step run.py is in, then
+            # stop. (A worker that exits on its node's death SIGKILLs it first: Ray's
+            # kill_child_processes_on_worker_exit; the test accepts either.)
             time.sleep(1.0)
             step += 1
             total += int(args.seed) * 10 + step * 0.5
