@@ -306,12 +306,24 @@ class AgentPolicy(Policy):
     """A trained agent acting deterministically (or with samples of its policy, deterministic=False);
     `action_path` is the KGRLActionPath for kgrl methods."""
 
-    def __init__(self, agent, action_path=None, time_obs: bool = True, deterministic: bool = True):
+    def __init__(self, agent, action_path=None, time_obs: bool = True, deterministic: bool = True,
+                 obs_history: int = 0):
         self.agent, self.path, self.time_obs, self.deterministic = agent, action_path, time_obs, deterministic
+        self.obs_history, self.history = obs_history, None  # envs.history (made at the first step)
 
     def step(self, env, obs):
         x = kgrl_observation(policy_observation(obs, self.time_obs), self.path)
+        x_raw = x
+        if self.obs_history:
+            if self.history is None:
+                from .history import ObservationHistory
+
+                self.history = ObservationHistory(env.num_envs, x.shape[-1], self.agent.action_dim, self.obs_history,
+                                                  x.device)
+            x = self.history.stack(x, env.step_index)
         a = self.agent.act(x, deterministic=self.deterministic)
+        if self.history is not None:
+            self.history.push(x_raw, a)
         return self.path.step(a) if self.path is not None else env.step(a)
 
 

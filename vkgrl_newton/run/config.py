@@ -64,6 +64,7 @@ class RunConfig:
     # and in Factory the smoothed contact force (Forge's observation has it)
     tcp_velocity_obs: bool = False
     force_obs: bool = False
+    obs_history: int = 0  # the SAC methods: the last K (input, action) pairs stacked onto the input (envs.history)
     ppo: dict | None = None  # rsl-rl's runner configuration (ppo methods)
     # the prior (kmp methods): your demonstrations or the scripted ones, the KMP's reference and
     # parameters (None: kmp.prior's defaults; a resumed run's own), the action path's reach floors (mm)
@@ -101,8 +102,10 @@ class RunConfig:
     def obs_dim(self) -> int:
         """The policy input's width: observation_dim(), the same function the env uses, less time if ablated,
         plus the KMP query's phase with the time action."""
-        return (observation_dim(self.env, self.latent_dim, self.tcp_velocity_obs, self.force_obs)
-                - (0 if self.time_obs else 1) + (1 if self.kgrl_time_action else 0))
+        width = (observation_dim(self.env, self.latent_dim, self.tcp_velocity_obs, self.force_obs)
+                 - (0 if self.time_obs else 1) + (1 if self.kgrl_time_action else 0))
+        # envs.history.stacked_width (torch-free here: the command line parses before torch loads)
+        return width + self.obs_history * (width + self.agent_action_dim)
 
     @property
     def agent_action_dim(self) -> int:
@@ -151,6 +154,8 @@ class RunConfig:
         for name in ("tcp_velocity_obs", "force_obs"):  # likewise
             if getattr(self, name):
                 meta[name] = True
+        if self.obs_history:  # likewise
+            meta["obs_history"] = self.obs_history
         if self.kgrl_recipe not in (None, "base"):  # absent for base, as in runs before recipes
             meta["kgrl_recipe"] = self.kgrl_recipe
         if self.method_row.vision:
@@ -188,6 +193,10 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
     ap.add_argument("--force-obs", action="store_true", default=None,
                     help="Factory: the policy also observes the smoothed contact force (with Forge's 1 N noise; the "
                          "KGRL paper's actor reads the wrench). A deviation from eq. 5.5; not yet ablated")
+    ap.add_argument("--obs-history", type=int, default=None, metavar="K",
+                    help="the SAC methods: the policy's input carries its last K inputs and actions (zeros before the "
+                         "episode began; envs.history), a feed-forward form of Factory's LSTM actor. 0 (default): none, "
+                         "the thesis. A deviation from eq. 5.5; not yet ablated")
     ap.add_argument("--kgrl-time-action", type=int, default=None, metavar="K",
                     help="kgrl, vision_kgrl: KMP time as an action (the thesis's future work, Chapter 7): one more "
                          "action dimension a_t moves the prior's query by 1 + round(K a_t) control steps per step, so "

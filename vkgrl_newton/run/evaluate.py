@@ -125,7 +125,8 @@ def make_policy(args, cfg: RunConfig, built, payload: dict | None):
             agent = SAC(meta["obs_dim"], cfg.agent_action_dim, sac, device=built.env.tdev, seed=args.seed)
         agent.load_state_dict(payload["agent"])
         torch.manual_seed(args.seed)  # PPO samples from torch's global generator, SAC from its own (seed)
-        return AgentPolicy(agent, built.action_path, time_obs=meta["time_obs"], deterministic=not args.stochastic)
+        return AgentPolicy(agent, built.action_path, time_obs=meta["time_obs"], deterministic=not args.stochastic,
+                           obs_history=meta.get("obs_history", 0))
     if args.policy == "kmp_prior":
         return KMPPriorPolicy(built.action_path)
     if args.policy == "kmp_search":  # (the search builds its own action path, with its reach floors)

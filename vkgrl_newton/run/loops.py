@@ -109,8 +109,10 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
     import torch
 
     from ..envs.evaluation import kgrl_observation, policy_observation
+    from ..envs.history import ObservationHistory
 
     cfg, env, agent, counters = loop.cfg, loop.env, loop.agent, loop.counters
+    history = None  # envs.history with --obs-history (made at the first input)
     # Overlapped loop (--overlap): env step k+1 runs in a worker thread while the main thread runs the
     # update due after step k; the action of step k+1 is drawn before that update, i.e. from the
     # policy after update k-1 (a one-update lag). The order of every draw from the agent's and the
@@ -137,7 +139,10 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
         loop.checkpoint()
     try:
         while counters["transitions"] < cfg.total_steps:
-            x = kgrl_observation(policy_observation(obs, loop.time_obs), loop.action_path)
+            x_raw = kgrl_observation(policy_observation(obs, loop.time_obs), loop.action_path)
+            if cfg.obs_history and history is None:
+                history = ObservationHistory(env.num_envs, x_raw.shape[-1], agent.action_dim, cfg.obs_history, env.tdev)
+            x = history.stack(x_raw, env.step_index) if history is not None else x_raw
             a = agent.explore(x)
             if loop.rollout_policy is not None and agent.num_transitions < agent.cfg.prior_rollouts:
                 a = loop.rollout_policy.actions(env, obs)
@@ -155,6 +160,9 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
             loop.env_time += dt
             x_next = kgrl_observation(_bootstrap_inputs(next_obs, dones, extras, loop.time_obs), loop.action_path,
                                       final=True)  # (the query where each world's step left it)
+            if history is not None:  # this step's (input, action) joins the history the next input carries
+                history.push(x_raw, a)
+                x_next = history.stack(x_next)  # (a reset world's history is cleared at its next input)
             _store(agent, x, a, reward, x_next, extras,
                    not_terminal, *_privileged_inputs(obs, next_obs, dones, extras))
             obs = next_obs

@@ -28,7 +28,7 @@ _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first
                   "nothing to resume; choose another directory, or delete this one to start it again")
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
 _RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic",
-                 "kgrl_time_action", "tcp_velocity_obs", "force_obs")
+                 "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history")
 
 
 @dataclass(frozen=True)
@@ -164,7 +164,7 @@ def _check_options(ns) -> None:
         # (--no-overlap is what PPO does anyway: sweep.py passes it to every one-core trial)
         for flag, given_here in (("--sac", ns.sac), ("--overlap", ns.overlap is True),
                                  ("--no-time-obs", ns.no_time_obs), ("--cpu-matmul", ns.cpu_matmul),
-                                 ("--privileged-critic", ns.privileged_critic)):
+                                 ("--privileged-critic", ns.privileged_critic), ("--obs-history", ns.obs_history)):
             if given_here:
                 raise ConfigError(f"{flag} is for the SAC methods ({names(uses_sac=True)}), not {ns.method!r}")
         try:
@@ -189,6 +189,8 @@ def _check_options(ns) -> None:
     if ns.kgrl_recipe is not None and not m.takes_recipe:
         raise ConfigError(f"--kgrl-recipe is for the kgrl methods on SAC ({names(takes_recipe=True)}), "
                           f"not {ns.method!r}")
+    if ns.obs_history is not None and not 0 <= ns.obs_history <= 16:
+        raise ConfigError(f"--obs-history {ns.obs_history}: steps of history, in [0, 16]")
     if ns.force_obs and ns.env == "forge":
         raise ConfigError("--force-obs is for --env factory: the Forge observation holds the force already")
     if ns.kgrl_time_action is not None:
@@ -318,7 +320,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         task=ns.task, method=ns.method, env=ns.env, action_dim=ns.action_dim, seed=ns.seed, num_envs=ns.num_envs,
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
         privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
-        tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs),
+        tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs), obs_history=int(ns.obs_history or 0),
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,
         sac=ns.sac_config, ppo=ns.ppo_cfg, demos=ns.demos, num_demos=ns.num_demos, kmp_reference=reference,
         kmp_params=kmp_params, vae=ns.vae, total_steps=ns.total_steps,

@@ -234,8 +234,8 @@ def final_evaluation(cfg: RunConfig, env, agent, action_path) -> dict:
     from ..envs.evaluation import AgentPolicy, KMPPriorPolicy, evaluate
 
     seed_evaluation(env, cfg.eval_seed)
-    metrics = evaluate(env, AgentPolicy(agent, action_path, cfg.time_obs), cfg.eval_episodes,
-                       progress=cfg.progress, desc="final evaluation")
+    policy = AgentPolicy(agent, action_path, cfg.time_obs, obs_history=cfg.obs_history)
+    metrics = evaluate(env, policy, cfg.eval_episodes, progress=cfg.progress, desc="final evaluation")
     metrics["eval_seed"] = cfg.eval_seed
     if action_path is not None:
         def evaluate_prior() -> dict:
