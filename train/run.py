@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 # error answer in well under a second; the heavy modules load once the arguments are checked.
 from vkgrl_newton.run.config import ConfigError, build_parser  # noqa: E402
 from vkgrl_newton.run.resolve import Done, resolve  # noqa: E402
-from vkgrl_newton.signals import stop_signals_as_interrupts  # noqa: E402
+from vkgrl_newton.signals import exit_code, stop_line, stop_signals_as_interrupts  # noqa: E402
 
 
 def main(argv=None, torch_threads: int | None = None) -> int:
@@ -54,16 +54,19 @@ def main(argv=None, torch_threads: int | None = None) -> int:
     when stopped (checkpointed). torch_threads: intra-op threads (1 as a program: the loop overlaps env
     and learner on two cores)."""
     ap = build_parser(__doc__)
-    try:
-        resolved = resolve(ap, argv, torch_threads=torch_threads)
-    except ConfigError as e:
-        ap.error(str(e))
-    if isinstance(resolved, Done):
-        print(resolved.message, file=sys.stderr)
-        return resolved.code
-    from vkgrl_newton.run.train import train
+    with stop_signals_as_interrupts():  # SIGTERM / SIGHUP: checkpoint and exit like Ctrl-C, at every phase
+        try:
+            resolved = resolve(ap, argv, torch_threads=torch_threads)
+        except ConfigError as e:
+            ap.error(str(e))
+        except KeyboardInterrupt as e:  # (timing the CPU matmul libraries on a new cache: its file is written whole)
+            print(stop_line("train/run.py", e, "nothing was written; run again to continue"), file=sys.stderr)
+            return exit_code(e)
+        if isinstance(resolved, Done):
+            print(resolved.message, file=sys.stderr)
+            return resolved.code
+        from vkgrl_newton.run.train import train
 
-    with stop_signals_as_interrupts():  # SIGTERM / SIGHUP: checkpoint and exit like Ctrl-C
         return train(resolved.config, resolved.payload, torch_threads=torch_threads)
 
 
