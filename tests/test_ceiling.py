@@ -44,7 +44,7 @@ def test_one_record_per_category(task):
         "success": rec(task, success=True, success_any=True, height_final_mm=0.1, lateral_final_mm=0.05),
         "seated_then_lost": rec(task, success_any=True),
         "seated_but_test_missed": rec(task, height_final_mm=mm(g.success_z) + 0.1, lateral_final_mm=0.1),
-        "tilted_or_slipped_in_grasp": rec(task, offset_change_xy_mm=mm(g.catch) + 0.2),
+        "tilted_or_slipped_in_grasp": rec(task, offset_change_xy_mm=mm(g.catch) + 0.2, landing_lateral_mm=0.1),
         "jammed_in_hole": rec(task, height_final_mm=mm(g.rest_height - g.entry_depth) - 0.2, lateral_final_mm=0.1,
                               press_final_mm=5.0, descent_last_mm=0.1),
         "held_above_seat": rec(task, height_final_mm=mm(g.rest_height - g.entry_depth) - 0.2, lateral_final_mm=0.1,
@@ -73,8 +73,14 @@ def test_boundaries():
     assert classify(rec(height_final_mm=0.0, lateral_final_mm=mm(g.success_xy + SEAT_HAIR) - eps)) == "seated_but_test_missed"
     assert classify(rec(height_final_mm=0.0, lateral_final_mm=mm(g.success_xy + SEAT_HAIR) + eps)) == "jammed_in_hole"
     # the grasp: an in-hand change up to the catch is not a slip; beyond BLOWN_OFFSET the part has left the hand
-    assert classify(rec(offset_change_xy_mm=mm(g.catch) - eps)) == "time_out_searching"
-    assert classify(rec(offset_change_xy_mm=mm(g.catch) + eps)) == "tilted_or_slipped_in_grasp"
+    assert classify(rec(offset_change_xy_mm=mm(g.catch) - eps, landing_lateral_mm=0.1)) == "time_out_searching"
+    assert classify(rec(offset_change_xy_mm=mm(g.catch) + eps, landing_lateral_mm=0.1)) == "tilted_or_slipped_in_grasp"
+    # ... only where it was aimed within the catch (on landing or at the end): pressed beside the entry, the miss first
+    assert classify(rec(offset_change_xy_mm=2.5, landing_lateral_mm=mm(g.catch) + eps)) == "time_out_searching"
+    assert classify(rec(offset_change_xy_mm=2.5, landing_lateral_mm=None)) == "time_out_searching"
+    assert classify(rec(offset_change_xy_mm=2.5, landing_lateral_mm=mm(g.catch) - eps)) == "tilted_or_slipped_in_grasp"
+    assert classify(rec(offset_change_xy_mm=2.5, lateral_final_mm=mm(g.catch) - eps,
+                        height_final_mm=19.0)) == "tilted_or_slipped_in_grasp"  # steered over the hole, tilted, jammed
     assert classify(rec(offset_change_xy_mm=mm(BLOWN_OFFSET) + eps)) == "other"
     assert classify(rec(height_final_mm=float("nan"))) == "other"
     # still descending over the last steps: time ran out while inserting (above the rest band: not yet in contact)

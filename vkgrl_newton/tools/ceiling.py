@@ -114,7 +114,10 @@ def classify(rec: dict) -> str:
     - other: the world blew up, a value is not finite, or the part left the hand (BLOWN_OFFSET);
     - seated_but_test_missed: height and centring within SEAT_HAIR of the test's thresholds, or within them
       (NutThread: then the yaw condition failed);
-    - tilted_or_slipped_in_grasp: the part's origin moved in the TCP frame by more than the catch (x, y);
+    - tilted_or_slipped_in_grasp: the part's origin moved in the TCP frame by more than the catch (x, y), and the
+      part was aimed within the catch (its lateral error when it first reached the tip's level, "landing_lateral_mm",
+      or at the end): a part pressed onto the face beside the entry also shifts in the self-centring grasp (the
+      in-hand noise's +-3 mm, which the grasp settle leaves in part), but there the miss came first;
     - time_out_inserting: below the rest band and still descending (DESCENT over the last DESCENT_STEPS steps);
     - held_above_seat: inside (below the entry's foot), not seated, and the final command presses less than
       PRESS_MIN ("press_final_mm": TCP z - commanded z): the controller holds the part there;
@@ -136,7 +139,9 @@ def classify(rec: dict) -> str:
         return "other"
     if h < g.success_z + SEAT_HAIR and lat < g.success_xy + SEAT_HAIR:
         return "seated_but_test_missed"
-    if slip > g.catch:
+    landing = rec.get("landing_lateral_mm")
+    aimed = lat < g.catch or (landing is not None and math.isfinite(landing) and landing * 1e-3 < g.catch)
+    if slip > g.catch and aimed:
         return "tilted_or_slipped_in_grasp"
     descent = rec.get("descent_last_mm", 0.0) * 1e-3
     if h < g.rest_height + REST_BAND and descent > DESCENT:
