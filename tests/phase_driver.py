@@ -4,7 +4,7 @@ tests/test_signals_phases.py (a real signal at each phase of a run).
     python tests/phase_driver.py MARKER HOLD run ARGS...   # train/run.py ARGS (its __main__ path)
     python tests/phase_driver.py MARKER HOLD gym ID CACHE   # gymnasium.make_vec(ID, num_envs=2, cache_dir=CACHE)
 
-HOLD names the phase to stop in (record, collect, fit, vae, final_eval, prior_eval): on entering it,
+HOLD names the phase to stop in (record, collect, fit, vae, start, final_eval, prior_eval): on entering it,
 at a point where its work is under way (record: inside the episodes; collect: frames written; vae: in
 the second epoch), the driver writes MARKER, then repeats that step's own work (the real function,
 again and again) until a signal stops it, so that the signal lands in the phase whatever the
@@ -85,6 +85,10 @@ def install_hold(hold: str, marker: Path) -> None:
 
         vae_train.save_vae = save_vae
         vae_train._read_batch = held(vae_train._read_batch, marker, when=lambda *a, **kw: any(checkpointed))
+    elif hold == "start":  # the run's files written, its loop not yet begun (inside train's _make_loop)
+        from vkgrl_newton.run import train
+
+        train.build_rollout_policy = held(train.build_rollout_policy, marker)
     elif hold in ("final_eval", "prior_eval"):  # envs.evaluation.evaluate, by the progress bar's name
         from vkgrl_newton.envs import evaluation
 

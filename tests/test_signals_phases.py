@@ -240,6 +240,19 @@ def test_sigterm_while_collecting_the_image_set_then_sigint_while_training_the_v
 
 
 @pytest.mark.slow
+def test_sigterm_before_the_first_checkpoint_removes_what_the_run_wrote(tmp_path):
+    """Between config.json (and tb/) and the loop's first checkpoint: a directory holding them and no
+    checkpoint would be refused by the next run and by --resume alike, so the stopped run removes them."""
+    run_dir = tmp_path / "run"
+    d = Driver(tmp_path, "start", "run", "--method", "sac", "--run-dir", str(run_dir), "--total-steps", "100000",
+               "--cache-dir", str(tmp_path / "cache"), *SMALL)
+    rc = d.stop_in_phase(signal.SIGTERM, "the loop's start")
+    assert_one_line(d, rc, signal.SIGTERM, "train/run.py: stopped by SIGTERM; stopped before its first checkpoint: "
+                    "what it wrote is removed; run again to start it")
+    assert not run_dir.exists()
+
+
+@pytest.mark.slow
 def test_sigterm_while_training_then_in_the_final_and_the_priors_evaluation(tmp_path):
     """One kgrl run stopped in each later phase in turn, each next run resuming it: training (the
     checkpoint at the loop's start), the final evaluation, the prior's evaluation (cached in

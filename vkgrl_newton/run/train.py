@@ -50,6 +50,7 @@ def train(cfg: RunConfig, payload: dict | None = None, torch_threads: int | None
                                  f"now {meta.get(key)}")
     counters = {"transitions": 0, "env_steps": 0, "episodes": 0, "wall_s": 0.0}
     made_dir = not cfg.run_dir.exists()
+    loop = None
     try:
         if payload is not None:
             built.agent.load_state_dict(payload["agent"])
@@ -66,6 +67,9 @@ def train(cfg: RunConfig, payload: dict | None = None, torch_threads: int | None
             return rc
         return _finish(cfg, built, meta, loop, payload, log)
     except KeyboardInterrupt as e:  # outside the loops' and the evaluation's own handling (starting, writing)
+        if loop is not None:
+            loop.bar.close()  # (before the line: else printed after it)
+            loop.writer.close()
         if cfg.ckpt_path.is_file():
             then = f"the checkpoint {cfg.ckpt_path} is kept (--resume continues)"
         else:  # stopped before its first checkpoint: its files would only make the next run refuse the directory
@@ -143,8 +147,6 @@ def _make_loop(cfg: RunConfig, built: Built, meta: dict, counters: dict, payload
     # the checkpoint, or an interrupted final evaluation, logs a second point at that count on resume)
     writer = SummaryWriter(str(cfg.run_dir / "tb"), purge_step=counters["transitions"] + 1 if payload else None)
     curves = CurveWriter(cfg.run_dir, resume_at=counters["transitions"] if payload else None)
-    bar = tqdm(total=cfg.total_steps, initial=counters["transitions"], unit="tr", disable=not cfg.progress,
-               desc=f"{cfg.method} {cfg.task} {cfg.env} {cfg.action_dim}D")
     if built.action_path is not None and cfg.method_row.takes_recipe:
         log(f"KGRL recipe {cfg.kgrl_recipe}: reach floors x, y {cfg.reach_floor_mm:g} mm, "
             f"z {cfg.reach_floor_z_mm:g} mm (--kgrl-recipe, docs/cli.md)")
@@ -158,6 +160,9 @@ def _make_loop(cfg: RunConfig, built: Built, meta: dict, counters: dict, payload
                 if cfg.sac.prior_ratio > 0 else "in the one replay buffer (prior_ratio=0)")
         log(f"the first {cfg.sac.prior_rollouts} transitions act with the scripted demonstrator through "
             f"the SAC action space (--sac prior_rollouts_policy=scripted), {kept}")
+    # the bar last: a stop before the Loop holds it would leave it open, printed after the stop's line
+    bar = tqdm(total=cfg.total_steps, initial=counters["transitions"], unit="tr", disable=not cfg.progress,
+               desc=f"{cfg.method} {cfg.task} {cfg.env} {cfg.action_dim}D")
     return Loop(cfg=cfg, env=env, step_fn=built.step_fn, agent=agent, counters=counters, writer=writer, curves=curves,
                 bar=bar, checkpoint=checkpoint, ckpt_path=cfg.ckpt_path, log=log, time_obs=cfg.time_obs,
                 env_steps0=counters["env_steps"], grad0=agent.num_updates, rollout_policy=rollout_policy)
