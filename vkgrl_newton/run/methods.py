@@ -86,7 +86,7 @@ def names(**what) -> str:
 # which train/run.py options apply to a method, by the row's properties (the refusals in run/resolve.py
 # check the same properties); docs/cli.md's table of methods is methods_markdown()'s output
 OPTION_RULES = (
-    ("--sac, --overlap, --no-time-obs, --cpu-matmul, --privileged-critic", "uses_sac"),
+    ("--sac, --overlap, --no-time-obs, --cpu-matmul, --privileged-critic, --obs-history", "uses_sac"),
     ("--ppo", "uses_ppo"),
     ("--kgrl-recipe, --kgrl-time-action", "takes_recipe"),
     ("--demos, --num-demos, --kmp-reference, --kgrl-reach-floor[-z]", "uses_kmp"),
