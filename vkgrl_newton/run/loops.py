@@ -31,8 +31,10 @@ class Loop:
                  ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int, rollout_policy=None):
         self.cfg, self.env, self.agent, self.counters = cfg, env, agent, counters
         self.step_fn = step_fn  # env.step, or the KGRL action path's step
-        # the KGRL action path whose step this is (its query phase is a policy input with the time action)
-        self.action_path = getattr(step_fn, "__self__", None)
+        # the KGRL action path whose step this is (its query phase is a policy input with the time action);
+        # None when step_fn is the env's own step
+        owner = getattr(step_fn, "__self__", None)
+        self.action_path = owner if hasattr(owner, "query_phase") else None
         self.writer, self.curves, self.bar, self.log = writer, curves, bar, log
         self.checkpoint = checkpoint  # checkpoint(pending_update=False, snapshot=None)
         self.ckpt_path, self.time_obs = ckpt_path, time_obs
