@@ -72,11 +72,15 @@ def time_backends(cfg: SACConfig, obs_dim: int, action_dim: int, rounds: int = 7
     """Seconds of one SAC gradient step (`SAC.update(1)`, this config's networks, batch and policy
     delay, on random transitions) per backend, on the CPU: the fastest of `rounds` timed calls.
 
-    The fastest, not the median: another process on the cores only ever adds time (and with torch's
-    threads, OpenMP barriers stall whenever one core is taken), so the least-disturbed call is the
-    closest to the library's own speed. Timed interleaved (drift hits both alike), after a warm-up;
-    each call repeats enough steps to last >= min_call_s (and a whole policy-delay cycle), so the
-    clock's resolution does not decide."""
+    On one torch thread (run.py's) the clock is the process's CPU time (time.process_time), not the
+    wall's: on a shared machine (a sweep's other trials, a test suite) the wall time of a step is
+    mostly the time the process waits for a core, alike for both libraries, and it made the choice a
+    coin toss; the CPU time the step takes is what the library decides. On several threads it is the
+    wall's (CPU time would count the threads' spin-waits at every barrier), which a loaded machine
+    disturbs: the kept entry records the load average it was measured under. The fastest of the calls, as another process on the cores only
+    ever adds to it (caches, memory bandwidth). Timed interleaved (drift hits both alike), after a
+    warm-up; each call repeats enough steps to last >= min_call_s of CPU time (and a whole
+    policy-delay cycle), so the clock's resolution does not decide."""
     from .sac import SAC  # (sac.py imports this module)
 
     n = max(4 * cfg.batch_size, 1024)
@@ -92,16 +96,17 @@ def time_backends(cfg: SACConfig, obs_dim: int, action_dim: int, rounds: int = 7
         agent.add(*data)
         agent.update(max(2, cfg.policy_delay))  # warm-up: allocator, optimizer state, oneDNN's primitive cache
         agents[backend] = agent
-    t = time.perf_counter()
+    clock = time.process_time if torch.get_num_threads() == 1 else time.perf_counter
+    t = clock()
     agents["torch"].update(cfg.policy_delay)
-    per_step = max(time.perf_counter() - t, 1e-6) / cfg.policy_delay
+    per_step = max(clock() - t, 1e-6) / cfg.policy_delay
     steps = cfg.policy_delay * max(1, math.ceil(min_call_s / per_step / cfg.policy_delay))
     times: dict[str, list[float]] = {b: [] for b in MATMUL_BACKENDS}
     for _ in range(rounds):
         for backend, agent in agents.items():
-            t = time.perf_counter()
+            t = clock()
             agent.update(steps)
-            times[backend].append((time.perf_counter() - t) / steps)
+            times[backend].append((clock() - t) / steps)
     return {b: min(ts) for b, ts in times.items()}
 
 
@@ -150,6 +155,8 @@ def _choose(cfg: SACConfig, obs_dim: int, action_dim: int, choice_file, log) -> 
         seconds = time_backends(dataclasses.replace(cfg, cpu_matmul="torch"), obs_dim, action_dim)
         backend = min(seconds, key=seconds.get)
         choices[key] = {"backend": backend, "seconds_per_step": seconds,
+                        "clock": "cpu" if torch.get_num_threads() == 1 else "wall",
+                        "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
                         "measured": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         atomic_write_text(path, strict_json({"format": _FORMAT, "choices": choices}, indent=2), overwrite=True)
     if log is not None:
