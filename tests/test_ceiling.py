@@ -202,3 +202,52 @@ def test_oracle_takes_over_a_part_that_went_in_unblocked(wp_cpu):
     eta = mean[n, :3] + gain[n][:3, :3] @ (a[0, :3] * env.task.w_pos)
     assert np.all(np.abs(a[0, :3]) < 1)
     np.testing.assert_allclose(eta, want, atol=1e-6)
+
+
+def test_oracle_mesh_yaw_turns_the_gear_to_a_gap(wp_cpu):
+    """mesh_pitch (GearMesh): once on, the yaw of eta is the meshing yaw's: the nearest TCP yaw at which the held
+    gear's yaw (the TCP's plus its in-hand offset) less the fixed part's is a multiple of the pitch."""
+    from vkgrl_newton.envs.evaluation import KMPOraclePolicy
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.pose import pose_to_eta
+    from vkgrl_newton.kmp.prior import fit_prior
+    from vkgrl_newton.rotations import euler_xyz_from_quat, quat_from_euler_xyz, quat_mul
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
+    env = fake_env(2)
+    pitch = 2 * math.pi / 19
+    policy = KMPOraclePolicy.with_floors(tables, env, push_mm=3.0, inside_mm=24.25, mesh_pitch=pitch)
+    tcp_yaw = torch.tensor([0.10, -0.05])
+    off = torch.tensor([0.07, -0.12])  # the gear's yaw in the hand
+    env.fixed_yaw = torch.tensor([0.2, 0.05])
+    tcp_q = quat_from_euler_xyz(torch.full((2,), math.pi), torch.zeros(2), tcp_yaw)
+    flip = torch.tensor((0.0, 1.0, 0.0, 0.0)).expand(2, 4)
+    held_q = quat_mul(quat_from_euler_xyz(torch.full((2,), math.pi), torch.zeros(2), tcp_yaw + off), flip)
+    env.tcp_p = env.target_frame_pos_w + torch.tensor([0.0, 0.0, 0.03])
+    env.tcp_pose = lambda: (env.tcp_p, tcp_q)
+    env.held_pose = lambda: (env.held_p, held_q)
+    held_off = euler_xyz_from_quat(held_q.double())[2] - tcp_yaw.double()  # as the env's frames read it
+    goal = policy.mesh_yaw(env)
+    gear = goal + torch.atan2(torch.sin(held_off), torch.cos(held_off)) - env.fixed_yaw.double()
+    k = gear / pitch
+    assert torch.allclose(k, k.round(), atol=1e-9) and bool(((goal - tcp_yaw.double()).abs() <= pitch / 2 + 1e-9).all())
+    n = 110  # both worlds inside: on
+    env.episode_length_buf.fill_(n)
+    env.held_p[:] = env.target_base_w + torch.tensor([0.0, 0.0, 2e-3])
+    mean, gain = policy.path.tables.mean.numpy(), policy.path.tables.gain.numpy()
+    obs = torch.zeros(2, 8)
+    obs[:, 1:4] = torch.from_numpy(mean[[n, n], :3]).float()
+    a = policy.actions(env, {"policy": obs}).double().numpy()
+    q_goal = quat_from_euler_xyz(torch.full((2,), math.pi), torch.zeros(2), goal.float()).double()
+    rz = pose_to_eta(env.tcp_p.double(), q_goal, env.target_frame_pos_w.double(), env.task.psi_ref)[:, 5].numpy()
+    ax = [0, 1, 2, 5]
+    w = np.array([env.task.w_pos] * 3 + [env.task.w_rot])
+    unclipped = 0
+    for e in range(2):
+        eta = mean[n, ax] + gain[n][np.ix_(ax, ax)] @ (a[e] * w)
+        if np.all(np.abs(a[e]) < 1):
+            np.testing.assert_allclose(eta[3], rz[e], atol=1e-5)
+            unclipped += 1
+        else:
+            assert a[e, 3] != 0
+    assert unclipped >= 1

@@ -225,6 +225,7 @@ class KMPSearchPolicy(Policy):
         self.held = torch.where(drop.unsqueeze(-1), want[:, :2], self.held)
         self.found |= drop
         want = torch.where(self.found.unsqueeze(-1), torch.cat([self.held, self._settled_z(env, rel, m)], -1), want)
+        self._last = (want, step, on)  # (KMPOraclePolicy's yaw)
         zeta = torch.linalg.solve(self.gain3[step], (want - m).unsqueeze(-1)).squeeze(-1)  # (E, 3): x, y, z
         a = torch.zeros(rel.shape[0], env.num_actions, device=env.tdev)
         a[:, :3] = torch.where(on.unsqueeze(-1), (zeta / self.scale3).clamp(-1.0, 1.0), 0.0).to(a.dtype)
@@ -259,20 +260,37 @@ class KMPOraclePolicy(KMPSearchPolicy):
     the information is there (tools/ceiling.py)."""
 
     def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
-                 push_mm: float | None = None, inside_mm: float | None = None):
+                 push_mm: float | None = None, inside_mm: float | None = None, mesh_pitch: float | None = None):
         super().__init__(action_path, params or ORACLE_PARAMS)
         self.gain = float(gain)
         self.push_mm = push_mm
         self.inside_mm = inside_mm
+        self.mesh_pitch = mesh_pitch  # rad: steer the yaw too, to the nearest yaw where the held gear meshes
+        ax = [0, 1, 2, 5]
+        self.mean4 = self.mean[:, ax]
+        self.gain4 = self.path.tables.gain.to(self.mean.device, torch.float64)[:, ax][:, :, ax]
+        self.scale4 = self.path.scale[:4].to(torch.float64)
 
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
-                    push_mm: float | None = None, inside_mm: float | None = None) -> "KMPOraclePolicy":
+                    push_mm: float | None = None, inside_mm: float | None = None,
+                    mesh_pitch: float | None = None) -> "KMPOraclePolicy":
         from .kgrl_action import KGRLActionPath
 
         p = params or ORACLE_PARAMS
         return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
-                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm, inside_mm)
+                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm, inside_mm, mesh_pitch)
+
+    def mesh_yaw(self, env) -> torch.Tensor:
+        """(E,) float64 TCP yaw nearest the current one at which the held gear's teeth face the fixed gears' gaps
+        (its yaw relative to the fixed part's a multiple of mesh_pitch; privileged: the demonstrator's rule)."""
+        from ..rotations import euler_xyz_from_quat
+
+        yaw = euler_xyz_from_quat(env.tcp_pose()[1].double())[2]
+        d = euler_xyz_from_quat(env.held_pose()[1].double())[2] - yaw
+        off = torch.atan2(torch.sin(d), torch.cos(d))  # the gear's yaw in the hand
+        fixed = env.fixed_yaw.double()
+        return fixed + torch.round((yaw + off - fixed) / self.mesh_pitch) * self.mesh_pitch - off
 
     def actions(self, env, obs) -> torch.Tensor:
         """inside_mm (privileged): a part that went in without being blocked (its true height above seated below
@@ -286,7 +304,21 @@ class KMPOraclePolicy(KMPSearchPolicy):
             self.since = torch.where(new, n, self.since)
             self.found |= new
             self.held = torch.where(new.unsqueeze(-1), rel[:, :2] - self.gain * d[:, :2], self.held)
-        return super().actions(env, obs)
+        a = super().actions(env, obs)
+        if self.mesh_pitch is None:
+            return a
+        # the yaw as well (4 x 4 solve on x, y, z, yaw): the eta of the TCP turned to the meshing yaw
+        from ..kmp.pose import pose_to_eta
+        from ..rotations import quat_from_euler_xyz
+
+        want, step, on = self._last
+        goal = self.mesh_yaw(env)
+        q = quat_from_euler_xyz(torch.full_like(goal, math.pi), torch.zeros_like(goal), goal)
+        rz = pose_to_eta(env.tcp_pose()[0].double(), q, env.target_frame_pos_w.double(), env.task.psi_ref)[:, 5]
+        zeta = torch.linalg.solve(self.gain4[step], (torch.cat([want, rz.unsqueeze(-1)], -1)
+                                                     - self.mean4[step]).unsqueeze(-1)).squeeze(-1)
+        a4 = (zeta / self.scale4).clamp(-1.0, 1.0).to(a.dtype)
+        return torch.where(on.unsqueeze(-1), a4, a)
 
     def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         lateral = (env.held_pose()[0] - env.target_base_w)[:, :2].to(torch.float64)  # privileged

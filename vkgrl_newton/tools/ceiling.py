@@ -9,7 +9,7 @@ every run's final evaluation):
 - `scripted`: the privileged scripted demonstrator (envs/scripted.py) through `step_pose`;
 - `oracle`: the privileged oracle in the floored null space (envs.evaluation.KMPOraclePolicy): steered by the
   true lateral error once blocked, and once the part drops (or is found inside the fixed part without having been
-  blocked), pressed ORACLE_PUSH_MM below its true seat;
+  blocked), pressed ORACLE_PUSH_MM below its true seat; GearMesh: the yaw too, to where the teeth mesh;
 - `oracle28`: issue 28's oracle as measured there (after the drop, the prior's z);
 - `prior`: the KMP prior, a = 0 (train/evaluate.py --policy kmp_prior);
 - `prior_push`: the prior with its seat lowered PRIOR_PUSH_MM (blind; what a demonstration of the push would give);
@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..assets_usd.dimensions import (BOLT_CORE_RADIUS, BOLT_TIP_HEIGHT, GEAR_BASE_HEIGHT, GEAR_BORE_APOTHEM, GEAR_HEIGHT,
-                                     GEAR_SHAFT_RADIUS, GEAR_TOOTH_CLEARANCE, HOLE_CHAMFER, HOLE_DEPTH, HOLE_DIAMETER,
+                                     GEAR_SHAFT_RADIUS, GEAR_TEETH, GEAR_TOOTH_CLEARANCE, HOLE_CHAMFER, HOLE_DEPTH, HOLE_DIAMETER,
                                      NUT_BORE_APOTHEM, PEG_DIAMETER, THREAD_BOLT_TOP, THREAD_CAPSULE_RADIUS,
                                      THREAD_NUT_RADIUS, THREAD_PITCH)
 
@@ -338,8 +338,10 @@ def make_controller(name: str, env, tables, task: str, seed: int = 0):
     if name == "oracle":  # the ceiling's: settles at the search's 0.3 mm drop, then presses the part ORACLE_PUSH_MM
         # below its seat (privileged z too)
         g = CEILING_GEOMETRY[task]
+        pitch = 2 * math.pi / GEAR_TEETH["medium"] if task == "GearMesh" else None  # the teeth decide the yaw
         return KMPOraclePolicy.with_floors(tables, env, replace(oracle_params(task), settle_mm=0.3),
-                                           push_mm=ORACLE_PUSH_MM, inside_mm=1e3 * (g.rest_height - g.entry_depth))
+                                           push_mm=ORACLE_PUSH_MM, inside_mm=1e3 * (g.rest_height - g.entry_depth),
+                                           mesh_pitch=pitch)
     if name == "prior_push":
         return KMPPriorPolicy(KGRLActionPath(pushed_prior(tables, PRIOR_PUSH_MM * 1e-3), env))
     raise ValueError(f"controller must be one of {CONTROLLERS}, got {name!r}")
