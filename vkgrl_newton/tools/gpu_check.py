@@ -313,7 +313,7 @@ def check_sac_updates(dev: str, updates: int) -> dict:
     args = argparse.Namespace(fill=20_000, batch_size=256, hidden=[512, 256, 128], obs_dim=8, action_dim=4,
                               device=tdev)
     data = _random_transitions(args.fill, args.obs_dim, args.action_dim, seed=0)
-    run = make_ours(args, data, policy_delay=4)
+    run, cpu_matmul = make_ours(args, data, policy_delay=4, cpu_matmul="auto")  # (cuBLAS on CUDA: "torch")
 
     def sync():
         if tdev.type == "cuda":
@@ -326,7 +326,7 @@ def check_sac_updates(dev: str, updates: int) -> dict:
     sync()
     wall = time.perf_counter() - t0
     return {"preset": "thesis", "variant": "ours_thesis (bench_sac)", "obs_dim": 8, "action_dim": 4,
-            "hidden": args.hidden, "batch_size": 256, "policy_delay": 4, "torch_device": str(tdev),
+            "hidden": args.hidden, "batch_size": 256, "policy_delay": 4, "torch_device": str(tdev), "cpu_matmul": cpu_matmul,
             "torch_threads": torch.get_num_threads(), "updates": updates, "timed_s": wall,
             "grad_steps_per_s": updates / wall}
 
