@@ -1,4 +1,4 @@
-"""Dense layers of the SAC networks: torch's matmul on CUDA, oneDNN's on the CPU.
+"""Dense layers of the SAC networks: torch's matmul on CUDA, oneDNN's or torch's (MKL) on the CPU.
 
 Why: torch's float32 CPU matmul is MKL's sgemm, and MKL takes its AVX2 code path on AMD CPUs
 (its AVX-512 kernels are dispatched on Intel only). oneDNN, which torch also ships and its
@@ -7,8 +7,12 @@ product runs at 98 GFLOP/s per core through MKL and 212 through oneDNN (docs/log
 the SAC update is ~2/3 matmul. Same products, another summation order: float32 last bits differ
 from `F.linear`, the run stays deterministic on one machine.
 
-Backends (`SACConfig.cpu_matmul`): "onednn" (the default on a CPU) or "torch" (`F.linear` and
-`torch.baddbmm`, the reference the tests compare against). On CUDA both are torch's (cuBLAS).
+Which is faster depends on the machine: on a 2-core Zen 4 EPYC on 2026-12-05 MKL was (16 % at two
+threads, even at one), on an Intel Xeon MKL too (issue 43). So the default is "auto": timed per
+machine and kept (agents/matmul_backend.py).
+
+Backends (`SACConfig.cpu_matmul`): "onednn" or "torch" (`F.linear` and `torch.baddbmm`, the
+reference the tests compare against); "auto" resolves to one of them. On CUDA both are torch's (cuBLAS).
 oneDNN is reached through `torch.ops.mkldnn._linear_pointwise`, an operator of torch's own
 (inductor's CPU linear), checked once per process against `F.linear`; where it is missing or
 disagrees, "onednn" falls back to "torch" with a warning.
