@@ -5,6 +5,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# train/run.py's smallest SAC run: 2 worlds, tiny networks, updates from the 8th transition
+TINY_RUN = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac", "batch_size=8",
+            "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000"]
+
 
 def load_script(name: str):
     """train/<name>.py as a fresh module object."""

@@ -35,6 +35,8 @@ def test_tcp_velocity_and_force_inputs_on_a_stepped_env(wp_cpu):
         lin, ang = obs[:, 11:14].double().numpy(), obs[:, 14:17].double().numpy()
         np.testing.assert_allclose(lin, (p1 - p0) / CONTROL_DT, atol=1e-4)  # float32 poses / (1/15 s)
         want = (Rotation.from_quat(q1) * Rotation.from_quat(q0).inv()).as_rotvec() / CONTROL_DT
+        # the env's float32 quat_log of a rotation of ~1e-2 rad: an absolute error of a few 1e-7 rad (float32's
+        # rounding of the quaternions' components, ~6e-8 each), / (1/15 s) ~ 1e-5 rad/s; 1e-3 bounds it with room
         np.testing.assert_allclose(ang, want, atol=1e-3)
         assert float(np.abs(lin).max()) > 1e-4  # the arm moved: a non-trivial comparison
         force = obs[:, 8:11] - env.force_smoothed_w
@@ -63,12 +65,10 @@ def test_the_runs_options_and_refusals(tmp_path):
 def test_a_run_with_the_extra_inputs_trains_and_its_checkpoint_evaluates(wp_cpu, tmp_path):
     import json
 
-    from scripts import load_script
+    from scripts import TINY_RUN, load_script
 
     run_dir = tmp_path / "inputs"
-    tiny = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac",
-            "batch_size=8", "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000",
-            "--cpu-matmul", "torch"]
+    tiny = [*TINY_RUN, "--cpu-matmul", "torch"]
     assert load_script("run").main(["--method", "sac", "--tcp-velocity-obs", "--force-obs", "--run-dir", str(run_dir),
                                     "--total-steps", "16", "--eval-episodes", "0", *tiny]) == 0
     assert json.loads((run_dir / "config.json").read_text())["obs_dim"] == 17

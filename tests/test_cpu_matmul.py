@@ -36,7 +36,9 @@ def test_auto_is_timed_once_per_machine_and_shapes_then_read_back(tmp_path, monk
     assert len(calls) == 1
     kept = json.loads(path.read_text())["choices"]
     assert list(kept) == [mb.choice_key(TINY, 8, 4)] and kept[mb.choice_key(TINY, 8, 4)]["backend"] == "torch"
-    assert mb.cpu_model() in mb.choice_key(TINY, 8, 4) and torch.__version__ in mb.choice_key(TINY, 8, 4)
+    from vkgrl_newton.runtime import cpu_model
+
+    assert cpu_model() in mb.choice_key(TINY, 8, 4) and torch.__version__ in mb.choice_key(TINY, 8, 4)
     # the second call (any later run on this machine) reads the kept winner, even if a timing now would differ
     calls2 = _fake_timer(monkeypatch, {"onednn": 1e-3, "torch": 2e-3})
     assert mb.choose_cpu_matmul(TINY, 8, 4, "cpu", path) == "torch" and calls2 == []

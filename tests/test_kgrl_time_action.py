@@ -58,6 +58,7 @@ def test_a_zero_time_action_is_the_prior_step_by_step(wp_cpu, tables):
         timed.step(torch.cat([a, torch.zeros(E, 1)], -1))
         assert torch.equal(plain_env.commands[-1], timed_env.commands[-1]), n
         assert torch.equal(timed.query_index, timed_env.step_index)
+        # one float32 division against float64's: relative error <= 2^-24 ~ 6e-8
         np.testing.assert_allclose(timed.query_phase().squeeze(-1).numpy(),
                                    timed_env.step_index.numpy() / tables.n_steps, rtol=1e-6)
     assert plain.query_phase() is None
@@ -76,10 +77,12 @@ def test_the_time_action_moves_the_query_by_the_commanded_amount(wp_cpu, tables)
         path.step(torch.cat([torch.zeros(E, D), a_t[:, None]], -1))
         step_cmd = env.commands[-1]
         # the command was the prior's mean (zeta = 0) at the query held before this step
+        # the kernel's float32 target + eta (|.| < 1 m), less the target again: two roundings of 6e-8 m at most
         np.testing.assert_allclose(step_cmd.numpy() - env.target_frame_pos_w.numpy(), mean[want, :3], atol=1e-6)
         want = np.clip(want + 1 + np.round(k * a_t.numpy()).astype(np.int64), 0, tables.n_steps)
         assert path.query_index.tolist() == want.tolist()
-        np.testing.assert_allclose(path.query_phase(final=True).squeeze(-1).numpy(), want / tables.n_steps, rtol=1e-6)
+        np.testing.assert_allclose(path.query_phase(final=True).squeeze(-1).numpy(), want / tables.n_steps,
+                                   rtol=1e-6)  # (one float32 division, as above)
     assert want[0] == 0 and want[-1] == 12 * 5  # clamped at the start; running ahead
 
 
@@ -96,7 +99,8 @@ def test_a_new_episode_restarts_the_query_and_a_time_out_bootstraps_from_where_i
     assert path.query_index.tolist() == [0] * E  # the new episode starts the prior again
     x = torch.zeros(E, 8)
     np.testing.assert_allclose(kgrl_observation(x, path)[:, -1].numpy(), 0.0)
-    np.testing.assert_allclose(kgrl_observation(x, path, final=True)[:, -1].numpy(), 10 / tables.n_steps, rtol=1e-6)
+    np.testing.assert_allclose(kgrl_observation(x, path, final=True)[:, -1].numpy(), 10 / tables.n_steps,
+                               rtol=1e-6)  # one float32 division
     assert torch.equal(kgrl_observation(x, None), x)
 
 
@@ -127,14 +131,12 @@ def test_bad_time_steps_and_the_runs_refusals(wp_cpu, tables, tmp_path):
 def test_a_time_action_run_trains_evaluates_its_prior_and_its_checkpoint(wp_cpu, tmp_path):
     import json
 
-    from scripts import load_script
+    from scripts import TINY_RUN, load_script
 
     demos = tmp_path / "demos.npz"
     synthetic_demos("PegInsert", 8, action_dim=6, seed=1).save(demos)
     run_dir = tmp_path / "timed"
-    tiny = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac",
-            "batch_size=8", "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000",
-            "--sac", "prior_rollouts=8", "--cpu-matmul", "torch"]
+    tiny = [*TINY_RUN, "--sac", "prior_rollouts=8", "--cpu-matmul", "torch"]
     assert load_script("run").main(["--method", "kgrl", "--kgrl-time-action", "2", "--demos", str(demos),
                                     "--run-dir", str(run_dir), "--total-steps", "24", "--eval-episodes", "1",
                                     "--cache-dir", str(tmp_path / "cache"), *tiny]) == 0

@@ -131,7 +131,7 @@ def mutated_arrays(draw, seed: dict) -> dict:
         elif op == "dtype" and key in arrays:
             try:
                 arrays[key] = np.asarray(arrays[key]).astype(draw(DTYPES))
-            except (ValueError, OverflowError):
+            except (ValueError, OverflowError):  # a dtype these values cannot take: the example keeps the array
                 pass
         elif op == "version":
             arrays["format_version"] = np.int64(draw(st.integers(-3, 2**40)))

@@ -71,12 +71,10 @@ def test_the_runs_width_is_the_stacks_and_the_option_is_refused_where_it_cannot_
 def test_a_history_run_trains_and_its_checkpoint_evaluates(wp_cpu, tmp_path):
     import json
 
-    from scripts import load_script
+    from scripts import TINY_RUN, load_script
 
     run_dir = tmp_path / "hist"
-    tiny = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac",
-            "batch_size=8", "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000",
-            "--cpu-matmul", "torch"]
+    tiny = [*TINY_RUN, "--cpu-matmul", "torch"]
     assert load_script("run").main(["--method", "sac", "--obs-history", "2", "--run-dir", str(run_dir),
                                     "--total-steps", "16", "--eval-episodes", "1", *tiny]) == 0
     metrics = json.loads((run_dir / "metrics.json").read_text())

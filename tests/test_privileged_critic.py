@@ -85,6 +85,8 @@ def test_the_privileged_state_is_normalized_apart_and_checkpointed():
     torch.testing.assert_close(agent.normalize(obs), plain.normalize(obs), rtol=0, atol=0)  # obs stats untouched
     p64 = priv.double()
     want = (p64 - p64.mean(0)) / (p64.std(0, unbiased=False) + cfg.obs_norm_eps)  # rsl-rl's running stats, one batch
+    # rsl-rl's float32 running mean and variance of 64 rows near 100 (relative rounding ~1e-7 per term, summed over
+    # 64: ~1e-5 of the std); 1e-4 bounds it
     torch.testing.assert_close(agent.normalize_priv(priv).double(), want, rtol=1e-4, atol=1e-4)
     state = agent.state_dict()
     again = SAC(OBS, ACT, cfg, "cpu", seed=5, priv_dim=PRIV)
@@ -127,6 +129,8 @@ def test_the_envs_critic_group_is_the_policys_plus_the_privileged_state(peg_env)
     in_hand_q = (tcp_r.inv() * held_r).as_quat()
     got_q = priv[:, 9:13]
     got_q = got_q * np.sign((got_q * in_hand_q).sum(-1, keepdims=True))  # q and -q are one rotation
+    # the env's float32 differences and rotation of positions < 1 m against float64 of the same float32 poses:
+    # a few roundings of 6e-8 m (quaternions: of 6e-8); 1e-6 m (1e-5 for the quaternion) bounds them
     np.testing.assert_allclose(priv[:, 0:3], held_p - env.target_base_w.double().numpy(), atol=1e-6)
     np.testing.assert_allclose(priv[:, 3:6], tcp_p - env.fixed_tip_w.double().numpy(), atol=1e-6)
     np.testing.assert_allclose(priv[:, 6:9], tcp_r.inv().apply(held_p - tcp_p), atol=1e-6)
@@ -161,13 +165,12 @@ def test_the_run_option_is_recorded_and_refused_where_it_cannot_hold(tmp_path):
 
 @pytest.mark.slow
 def test_a_privileged_critic_run_trains_resumes_and_evaluates(tmp_path, wp_cpu):
-    from scripts import load_script
+    from scripts import TINY_RUN, load_script
     from vkgrl_newton.agents.checkpoint import load_checkpoint
 
     run_py = load_script("run")
     run_dir = tmp_path / "priv"
-    tiny = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac",
-            "batch_size=8", "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000"]
+    tiny = TINY_RUN
     assert run_py.main(["--method", "sac", "--privileged-critic", "--run-dir", str(run_dir), "--total-steps", "24",
                         "--eval-episodes", "1", *tiny]) == 0
     assert json.loads((run_dir / "config.json").read_text())["privileged_critic"] is True

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from scripts import load_script
+from scripts import TINY_RUN, load_script
 import torch
 
 from quat_ref import q_to_matrix
@@ -23,8 +23,7 @@ from vkgrl_newton.rotations import quat_from_euler_xyz
 from vkgrl_newton.kmp.prior import fit_prior
 from vkgrl_newton.tasks import get_task
 
-TINY = ["--num-envs", "2", "--device", "cpu", "--no-progress", "--sac", "learning_starts=8", "--sac", "batch_size=8",
-        "--sac", "gradient_steps=2", "--sac", "hidden_dims=16,16", "--sac", "buffer_size=1000"]
+TINY = TINY_RUN
 
 
 def load_run_module():

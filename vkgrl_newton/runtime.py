@@ -8,10 +8,25 @@ import sys
 
 from .cli_types import add_verbose_flag, stderr_without  # noqa: F401  (add_verbose_flag: a name of this module too)
 
-__all__ = ["default_device", "torch_device", "configure_warp", "add_verbose_flag", "parse_cli", "device_error"]
+__all__ = ["default_device", "torch_device", "configure_warp", "add_verbose_flag", "parse_cli", "device_error",
+           "cpu_model"]
 
 # what Warp's native init prints on a machine without a GPU; nothing a CPU run can act on
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo's first 'model name'; platform's where there is none): what
+    every speed figure and the CPU matmul choice (agents/matmul_backend.py) name their machine by."""
+    import platform
+
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:  # no /proc/cpuinfo (not Linux): platform's name below
+        pass
+    return platform.processor() or platform.machine() or "unknown"
 
 
 def default_device() -> str:

@@ -21,7 +21,6 @@ import dataclasses
 import json
 import math
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -29,24 +28,14 @@ import torch
 
 from .._io import atomic_write_text, strict_json
 from ..cache import entry_lock
+from ..runtime import cpu_model
 from .dense import onednn_available
 from .sac_config import MATMUL_BACKENDS, SACConfig
 
-__all__ = ["choose_cpu_matmul", "choice_key", "time_backends", "default_choice_file", "cpu_model", "CHOICE_FILE"]
+__all__ = ["choose_cpu_matmul", "choice_key", "time_backends", "default_choice_file", "CHOICE_FILE"]
 
 CHOICE_FILE = "cpu_matmul.json"  # in a run's cache directory (runs/cache/)
 _FORMAT = 1
-
-
-def cpu_model() -> str:
-    """The CPU's model name (/proc/cpuinfo's first 'model name'; platform's elsewhere)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown"
 
 
 def default_choice_file() -> Path:

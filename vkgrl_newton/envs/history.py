@@ -40,9 +40,8 @@ class ObservationHistory:
         """x (E, input_width) with the history appended. With `step_index` (the env's), the worlds at an
         episode's first step start empty; without it (the state a finished episode ended in, for a
         time-out's bootstrap) the history is taken as it is."""
-        if step_index is not None:
-            fresh = (step_index == 0).view(-1, 1, 1)
-            self.pairs.copy_(torch.where(fresh, torch.zeros_like(self.pairs), self.pairs))
+        if step_index is not None:  # in place, no host read
+            self.pairs.masked_fill_((step_index == 0).view(-1, 1, 1), 0.0)
         return torch.cat([x, self.pairs.flatten(1)], -1)
 
     def push(self, x: torch.Tensor, a: torch.Tensor) -> None:

@@ -83,7 +83,7 @@ class KGRLActionPath:
             raise ValueError(f"actions must have shape ({self.env.num_envs}, {self.action_dim}), got {tuple(actions.shape)}")
         self.zeta[:, self.axes] = actions[:, :self.env_action_dim].clamp(-1.0, 1.0).to(self.zeta) * self.scale
         if self.time_steps:  # a world at its episode's first step starts the prior from its beginning
-            self.query_index.copy_(torch.where(self.env.step_index == 0, 0, self.query_index))
+            self.query_index.masked_fill_(self.env.step_index == 0, 0)
         w = self._wp
         kmp_horizon_pose(w["step_index"], w["zeta"], self._mean_wp, self._gain_wp, w["target_pos_w"], w["ref_quat_w"],
                          w["eta"], w["pos"], w["quat"])
@@ -97,7 +97,7 @@ class KGRLActionPath:
             moved = self.query_index + 1 + torch.round(self.time_steps * a_t).to(torch.int32)
             self.final_query_index.copy_(moved.clamp(0, self.tables.n_steps))  # rows 0..n_steps
             # a world the env has just reset (a new episode) starts the prior again
-            self.query_index.copy_(torch.where(self.env.step_index == 0, 0, self.final_query_index))
+            self.query_index.copy_(self.final_query_index).masked_fill_(self.env.step_index == 0, 0)
         return out
 
     def query_phase(self, final: bool = False) -> torch.Tensor | None:

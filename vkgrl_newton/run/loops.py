@@ -28,13 +28,11 @@ class Loop:
     """What a training loop (sac_loop, ppo_loop) works with, and the timings it keeps for the summary."""
 
     def __init__(self, *, cfg, env, step_fn, agent, counters: dict, writer, curves: CurveWriter, bar, checkpoint,
-                 ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int, rollout_policy=None):
+                 ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int, rollout_policy=None, action_path=None):
         self.cfg, self.env, self.agent, self.counters = cfg, env, agent, counters
         self.step_fn = step_fn  # env.step, or the KGRL action path's step
-        # the KGRL action path whose step this is (its query phase is a policy input with the time action);
-        # None when step_fn is the env's own step
-        owner = getattr(step_fn, "__self__", None)
-        self.action_path = owner if hasattr(owner, "query_phase") else None
+        # the KGRL action path (its query phase is a policy input with the time action); None: delta pose
+        self.action_path = action_path
         self.writer, self.curves, self.bar, self.log = writer, curves, bar, log
         self.checkpoint = checkpoint  # checkpoint(pending_update=False, snapshot=None)
         self.ckpt_path, self.time_obs = ckpt_path, time_obs

@@ -165,7 +165,8 @@ def _make_loop(cfg: RunConfig, built: Built, meta: dict, counters: dict, payload
                desc=f"{cfg.method} {cfg.task} {cfg.env} {cfg.action_dim}D")
     return Loop(cfg=cfg, env=env, step_fn=built.step_fn, agent=agent, counters=counters, writer=writer, curves=curves,
                 bar=bar, checkpoint=checkpoint, ckpt_path=cfg.ckpt_path, log=log, time_obs=cfg.time_obs,
-                env_steps0=counters["env_steps"], grad0=agent.num_updates, rollout_policy=rollout_policy)
+                env_steps0=counters["env_steps"], grad0=agent.num_updates, rollout_policy=rollout_policy,
+                action_path=built.action_path)
 
 
 def _summary(loop: Loop, payload: dict | None) -> dict:

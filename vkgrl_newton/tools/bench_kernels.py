@@ -40,7 +40,7 @@ import warp as wp
 from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS
 from .._io import atomic_write_text, strict_json
 from ..cli_types import device_name
-from ..runtime import device_error, parse_cli
+from ..runtime import cpu_model, device_error, parse_cli
 from ..signals import run_cli
 from ..kernels.kmp_horizon import kmp_horizon_pose, mat66f, vec6f
 from ..kernels.osc import osc_torques, osc_torques_torch
@@ -370,16 +370,7 @@ def _time(fn, device: str, warmup: int, repeats: int) -> float:
 
 
 def _machine() -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass  # no /proc/cpuinfo (not Linux): keep platform's name
-    info = dict(cpu=cpu, cores=os.cpu_count(), python=platform.python_version(), torch=torch.__version__,
+    info = dict(cpu=cpu_model(), cores=os.cpu_count(), python=platform.python_version(), torch=torch.__version__,
                 torch_threads=torch.get_num_threads(), warp=wp.config.version)
     if torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(0)

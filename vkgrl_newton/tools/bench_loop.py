@@ -217,7 +217,7 @@ def main(argv=None) -> int:
     import torch
 
     from .._io import atomic_write_text
-    from ..agents.matmul_backend import cpu_model
+    from ..runtime import cpu_model
 
     torch.set_num_threads(1)  # as run.py trains: its loop overlaps the env and the learner on two cores
 

@@ -34,11 +34,11 @@ import torch
 
 from .._io import atomic_write_text
 from ..agents.dense import onednn_available
-from ..agents.matmul_backend import CHOICE_FILE, choose_cpu_matmul, cpu_model
+from ..agents.matmul_backend import CHOICE_FILE, choose_cpu_matmul
 from ..agents.sac import SAC, make_sac_config
 from ..cli_types import add_cache_dir_option, add_device_option
 from ..run.config import add_cpu_matmul_option
-from ..runtime import device_error, parse_cli
+from ..runtime import cpu_model, device_error, parse_cli
 from ..signals import run_cli
 
 

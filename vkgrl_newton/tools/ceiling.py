@@ -390,19 +390,16 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, required=True, help="output (rewritten after each controller)")
     args = ap.parse_args(argv)
 
-    from ..runtime import configure_warp
+    from ..runtime import configure_warp, cpu_model
 
     configure_warp()
-    import platform
-
     import torch
 
     from .._io import atomic_write_text, strict_json
 
     torch.set_num_threads(1)
     env, tables, demos = build(args.task, args.num_envs, args.cache_dir, args.seed)
-    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                if ln.startswith("model name")), platform.processor()) if Path("/proc/cpuinfo").exists() else ""
+    cpu = cpu_model()
     out = {"task": args.task, "env": "factory", "action_dim": 4, "num_envs": args.num_envs,
            "episodes_per_world": args.episodes_per_world, "eval_seed": args.eval_seed, "seed": args.seed,
            "perturb_kp_ulp": args.perturb_kp_ulp, "demos": str(demos), "cpu": cpu, "command": "python -m "
