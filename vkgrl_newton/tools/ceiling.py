@@ -16,6 +16,9 @@ every run's final evaluation):
 - `search`: the blind spiral search in the floored null space (--policy kmp_search).
 `--perturb-kp-ulp K` moves every OSC gain K float32 ulps up at every episode start (nothing else changes):
 how many outcomes a last-bit difference flips (the Intel / AMD question of issue 40).
+`--demos-kp-ulp K` records the prior's demonstrations anew with the same K-ulp move (into --cache-dir, which must
+not hold them yet), fits the prior to them and evaluates it: what a last-bit difference in the *recording*, which
+each machine does for itself on an empty cache, does to the prior.
 
 Per episode it records the held part's lateral error to its target (xy) and height above seated (final and
 minimum), its pose in the TCP frame at the start and the end (offset, tilt), the peak contact force, the
@@ -306,6 +309,38 @@ def summary(records: list[dict]) -> dict:
             "categories": category_counts(records)}
 
 
+def record_perturbed_demos(task: str, cache_dir: str, kp_ulp: int, seed: int = 0, num_demos: int = 16,
+                           num_envs: int = 16) -> Path:
+    """The prior's demonstrations recorded as prepare.prior does (same seed, worlds and demonstrator), every OSC
+    gain `kp_ulp` float32 ulps up at each world's reset, saved where the prior's cache looks for them."""
+    import torch
+
+    from ..envs.assembly_env import AssemblyEnv, EnvConfig
+    from ..envs.demonstrations import record_demonstrations
+    from ..prepare.prior import demos_path_for
+
+    path = demos_path_for(cache_dir, task, num_demos, seed)
+    if path.exists():
+        raise FileExistsError(f"{path} exists: --demos-kp-ulp records anew, give it an empty --cache-dir")
+    env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_envs, device="cpu",
+                                seed=seed))
+    orig = env._set_family_gains
+
+    def set_gains(mask):
+        orig(mask)
+        for _ in range(kp_ulp):
+            env.kp[mask] = torch.nextafter(env.kp[mask], torch.full_like(env.kp[mask], math.inf))
+
+    env._set_family_gains = set_gains  # this tool's env only
+    demo_set, episodes = record_demonstrations(env, num_demos, seed=seed,
+                                               max_episodes=max(4, 3 * num_demos // num_envs + 2), progress=False)
+    if demo_set is None or len(demo_set.demo_lengths) < num_demos:
+        raise RuntimeError(f"the perturbed demonstrator seated too few parts in {episodes} rounds")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    demo_set.save(path)
+    return path
+
+
 def build(task: str, num_envs: int, cache_dir: str, seed: int = 0):
     """The Factory 4D env and the prior's tables of train/evaluate.py's KMP baselines (run.evaluate's config)."""
     from ..run.build import build_env, prior_tables
@@ -386,6 +421,9 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-seed", type=int, default=10_000)
     ap.add_argument("--seed", type=int, default=0, help="the env's construction and the demonstrator's draws")
     ap.add_argument("--perturb-kp-ulp", type=int, default=0, help="OSC gains this many float32 ulps up (sensitivity)")
+    ap.add_argument("--demos-kp-ulp", type=int, default=0,
+                    help="record the prior's demonstrations with the OSC gains this many ulps up (into an empty "
+                         "--cache-dir) and evaluate the prior fitted to them")
     ap.add_argument("--cache-dir", default="runs/cache")
     ap.add_argument("--json", type=Path, required=True, help="output (rewritten after each controller)")
     args = ap.parse_args(argv)
@@ -398,11 +436,13 @@ def main(argv=None) -> int:
     from .._io import atomic_write_text, strict_json
 
     torch.set_num_threads(1)
+    if args.demos_kp_ulp:
+        record_perturbed_demos(args.task, args.cache_dir, args.demos_kp_ulp, args.seed)
     env, tables, demos = build(args.task, args.num_envs, args.cache_dir, args.seed)
     cpu = cpu_model()
     out = {"task": args.task, "env": "factory", "action_dim": 4, "num_envs": args.num_envs,
            "episodes_per_world": args.episodes_per_world, "eval_seed": args.eval_seed, "seed": args.seed,
-           "perturb_kp_ulp": args.perturb_kp_ulp, "demos": str(demos), "cpu": cpu, "command": "python -m "
+           "perturb_kp_ulp": args.perturb_kp_ulp, "demos_kp_ulp": args.demos_kp_ulp, "demos": str(demos), "cpu": cpu, "command": "python -m "
            "vkgrl_newton.tools.ceiling " + " ".join(sys.argv[1:] if argv is None else argv),
            "thresholds_mm": {"catch": 1e3 * CEILING_GEOMETRY[args.task].catch,
                              "rest_height": 1e3 * CEILING_GEOMETRY[args.task].rest_height,
