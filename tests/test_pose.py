@@ -36,11 +36,18 @@ def t64(x):
     return torch.as_tensor(np.asarray(x), dtype=torch.float64)
 
 
+# float64's unit roundoff: + - * / sqrt round alike on every CPU (IEEE); sin, cos, atan2 may differ by
+# ~1 ulp between libm and numpy's or torch's SIMD kernels, so those count on both sides
+U64 = 2.0 ** -53
+
+
 def test_reference_quat_points_down():
     for psi in (0.0, math.radians(-40.0)):
         r = matrix(reference_quat(psi).numpy())
-        np.testing.assert_allclose(r, rz_rx(psi, math.pi), atol=1e-15)
-        np.testing.assert_allclose(r @ [0, 0, 1.0], [0, 0, -1.0], atol=1e-15)  # tool z axis points down
+        # was 1e-15 (~9 u): our sin/cos and product (~4 u), scipy's normalize + matrix (~8 u) against scipy's
+        # own Euler sin/cos and composition (~8 u), on entries <= 1: <= ~20 u
+        np.testing.assert_allclose(r, rz_rx(psi, math.pi), atol=32 * U64)
+        np.testing.assert_allclose(r @ [0, 0, 1.0], [0, 0, -1.0], atol=32 * U64)  # tool z axis points down
 
 
 # ---------------------------------------------------------------------------------------
@@ -55,12 +62,14 @@ def test_pose_eta_round_trip(psi_ref):
     q_tcp = random_quats(rng, n)
     eta = pose_to_eta(t64(p_tcp), t64(q_tcp), t64(p_target), psi_ref)
     assert eta.shape == (n, 6) and eta.dtype == torch.float64
-    np.testing.assert_allclose(eta[:, :3].numpy(), p_tcp - p_target, atol=1e-16)
+    # one IEEE subtraction on either side: the same bits on any CPU (was atol 1e-16)
+    np.testing.assert_array_equal(eta[:, :3].numpy(), p_tcp - p_target)
     # rotation part equals log(q_ref^-1 q_tcp) computed with matrices: R(eta) = R_ref^T R_tcp
     r_ref = matrix(reference_quat(psi_ref).numpy())
     for i in range(0, n, 17):
         np.testing.assert_allclose(rotvec_matrix(eta[i, 3:].numpy()), r_ref.T @ matrix(q_tcp[i]), atol=1e-12)
     p_back, q_back = eta_to_pose(eta, t64(p_target), psi_ref)
+    # (p - t) + t: two IEEE roundings of values < 1 (<= 2 u ~ 2.2e-16), the same on any CPU
     np.testing.assert_allclose(p_back.numpy(), p_tcp, atol=1e-15)
     q_back = q_back.numpy()
     sign = np.sign(np.sum(q_back * q_tcp, axis=1, keepdims=True))
@@ -77,7 +86,9 @@ def test_pose_eta_round_trip(psi_ref):
 def test_reference_pose_maps_to_zero(psi_ref):
     p_target = t64([0.1, -0.2, 0.3])
     eta = pose_to_eta(p_target, reference_quat(psi_ref), p_target, psi_ref)
-    np.testing.assert_allclose(eta.numpy(), np.zeros(6), atol=1e-15)
+    # positions: x - x = 0 exactly; rotation: v of q_ref^-1 q_ref is 4 products summed (<= 4 u), the
+    # log doubles it (2 v / w): <= 8 u (was 1e-15 ~ 9 u, no margin)
+    np.testing.assert_allclose(eta.numpy(), np.zeros(6), atol=16 * U64)
 
 
 @pytest.mark.parametrize("psi_ref", [0.0, math.radians(-40.0)])

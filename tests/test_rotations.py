@@ -36,6 +36,12 @@ def t64(x):
     return torch.as_tensor(np.asarray(x), dtype=torch.float64)
 
 
+# float64's unit roundoff. The tolerances below count roundings of values <= 1 in magnitude: any
+# CPU rounds + - * / sqrt the same (IEEE), but sin, cos, atan2 may differ by ~1 ulp between libm,
+# numpy's and torch's SIMD kernels (AVX2 vs AVX-512 builds), so those count on both sides.
+U64 = 2.0 ** -53
+
+
 # ---------------------------------------------------------------------------------------
 # exp / log
 # ---------------------------------------------------------------------------------------
@@ -44,7 +50,9 @@ def test_quat_exp_matches_rodrigues_and_is_unit():
     angles = rng.uniform(0.0, math.pi, 200)
     r = random_axes(rng, 200) * angles[:, None]
     q = quat_exp(t64(r)).numpy()
-    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-15)
+    # |q|: sin and cos (1 ulp each), r * sin(t/2)/t (3 roundings), 4 squares, 3 sums, sqrt: <= ~12 u
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=16 * U64)
+    # each matrix entry: ~10 roundings here and in scipy's exp, on entries <= 1 (<= ~2e-15); 1e-14 ~ 90 u
     np.testing.assert_allclose(matrices(q), rotvec_matrices(r), atol=1e-14)
 
 
@@ -92,8 +100,11 @@ def test_log_exp_round_trip_tiny_angles(angle):
     q = quat_exp(t64(r))
     assert torch.isfinite(q).all()
     # closed form: q = (sin(a/2) axis, cos(a/2))
+    # relative: the series or sin(t/2)/t and the product by r (<= ~5 roundings) against math.sin's ~1 ulp,
+    # and the norm |r| (~3 roundings): <= ~10 u ~ 1.1e-15; rtol 1e-14 ~ 90 u
     np.testing.assert_allclose(q.numpy()[:, :3], axes * math.sin(angle / 2), rtol=1e-14, atol=0)
-    np.testing.assert_allclose(q.numpy()[:, 3], math.cos(angle / 2), rtol=1e-15, atol=0)
+    # cos(t/2) of t <= 1e-5: 1 ulp on either side (torch's kernel vs libm) plus |r|'s ~3 u: ~5 u ~ 5.6e-16
+    np.testing.assert_allclose(q.numpy()[:, 3], math.cos(angle / 2), rtol=8 * U64, atol=0)
     back = quat_log(q).numpy()
     assert np.all(np.isfinite(back))
     np.testing.assert_allclose(back, r, rtol=1e-12, atol=0)
@@ -119,9 +130,11 @@ def test_exp_log_round_trip_random_quaternions():
 def test_quat_exp_xyzw_convention():
     for theta in (0.3, -1.2, 2.5):
         q = quat_exp(t64([0.0, 0.0, theta])).numpy()
-        np.testing.assert_allclose(q, [0.0, 0.0, math.sin(theta / 2), math.cos(theta / 2)], atol=1e-16)
+        # was atol 1e-16 (< 1 ulp: held only where torch and libm round sin/cos alike). sin, cos 1 ulp on
+        # each side (torch's SIMD kernel vs libm), r * sin(t/2) / t 2 more roundings: <= ~5 u of a value < 1
+        np.testing.assert_allclose(q, [0.0, 0.0, math.sin(theta / 2), math.cos(theta / 2)], atol=8 * U64)
     q = quat_exp(t64([0.7, 0.0, 0.0])).numpy()
-    np.testing.assert_allclose(q, [math.sin(0.35), 0.0, 0.0, math.cos(0.35)], atol=1e-16)
+    np.testing.assert_allclose(q, [math.sin(0.35), 0.0, 0.0, math.cos(0.35)], atol=8 * U64)
 
 
 def test_quat_exp_log_batched_shapes():
@@ -138,17 +151,22 @@ def test_quat_mul_against_scipy_and_matrices():
     q1, q2 = random_quats(rng, 300), random_quats(rng, 300)
     got = quat_mul(t64(q1), t64(q2)).numpy()
     # scipy composes p * q as the Hamilton product of the (normalized) quaternions, sign kept
-    np.testing.assert_allclose(got, (Rotation.from_quat(q1) * Rotation.from_quat(q2)).as_quat(), atol=1e-15)
+    # was atol 1e-15, below the bound: each component is 4 products summed (<= 4 u * |q1||q2| = 4 u, ours
+    # and scipy's, in any order or with FMA) and scipy renormalizes both inputs (~2 u each): <= 12 u
+    np.testing.assert_allclose(got, (Rotation.from_quat(q1) * Rotation.from_quat(q2)).as_quat(), atol=16 * U64)
+    # 3x3 products of entries <= 1 (3 terms) after ~10 roundings per matrix: <= ~40 u; 1e-14 ~ 90 u
     np.testing.assert_allclose(matrices(got), matrices(q1) @ matrices(q2), atol=1e-14)
     # conjugate is the inverse
     ident = quat_mul(quat_conjugate(t64(q1)), t64(q1)).numpy()
-    np.testing.assert_allclose(ident, np.tile([0, 0, 0, 1.0], (300, 1)), atol=1e-15)
+    # w = |q|^2 (4 squares summed: <= 4 u, and the input's own |q|^2 - 1 <= ~3 u); x, y, z cancel to <= 4 u
+    np.testing.assert_allclose(ident, np.tile([0, 0, 0, 1.0], (300, 1)), atol=8 * U64)
 
 
 def test_quat_rotate_matches_scipy():
     rng = np.random.default_rng(9)
     q, v = random_quats(rng, 200), rng.normal(size=(200, 3))
     got = quat_rotate(t64(q), t64(v)).numpy()
+    # |v| <~ 4 (normal draws): ~15 roundings here and in scipy's matrix product, <= ~60 u * 4 ~ 5e-15
     np.testing.assert_allclose(got, Rotation.from_quat(q).apply(v), atol=1e-14)
     # batched over leading dimensions: (2, 100, 4) with (2, 100, 3)
     assert quat_rotate(t64(q).view(2, 100, 4), t64(v).view(2, 100, 3)).shape == (2, 100, 3)
@@ -161,7 +179,8 @@ def test_quat_from_euler_xyz_matches_rz_ry_rx():
     pitch = rng.uniform(-math.pi / 2, math.pi / 2, 100)
     yaw = rng.uniform(-math.pi, math.pi, 100)
     q = quat_from_euler_xyz(t64(roll), t64(pitch), t64(yaw)).numpy()
-    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-15)
+    # three half-angle sin/cos pairs (1 ulp each), two Hamilton products (4 u each), the norm (~4 u): <= ~14 u
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=16 * U64)
     want = Rotation.from_euler("xyz", np.stack([roll, pitch, yaw], axis=1)).as_matrix()
     np.testing.assert_allclose(matrices(q), want, atol=1e-14)
     composed = (Rotation.from_euler("z", yaw[:, None]) * Rotation.from_euler("y", pitch[:, None])
