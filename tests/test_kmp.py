@@ -116,7 +116,11 @@ def test_rbf_kernel_values():
     a, b = np.array([0.0, 0.3, 1.0]), np.array([0.1, 0.5])
     got = rbf_kernel(a, b, 7.0).numpy()
     want = np.array([[np_k(x, y, 7.0) for y in b] for x in a])
-    np.testing.assert_allclose(got, want, rtol=1e-15)
+    # exp(x) with x = -l d^2 associated differently here and there (<= 2 u64 each side, relative), which
+    # exp turns into |x| * 4 u64, plus exp's own <= 1 ulp (2 u64) on each side (torch's SIMD vs numpy's
+    # kernel): rtol (4 max|x| + 4) u64 ~ 2.9e-15 (was 1e-15, below that bound for |x| up to 5.7)
+    max_x = 7.0 * float(np.max((a[:, None] - b[None, :]) ** 2))
+    np.testing.assert_allclose(got, want, rtol=(4 * max_x + 4) * 2.0 ** -53)
 
 
 def test_kmp_mean_interpolates_reference_as_lam_sigma_vanishes():

@@ -29,6 +29,9 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 SMALL = dict(hidden_dims=(32, 32), batch_size=16, learning_starts=32, buffer_size=512, gradient_steps=4)
 
 
+U32 = 2.0 ** -24  # float32's unit roundoff
+
+
 def small_agent(obs_dim=3, action_dim=2, seed=0, **overrides) -> SAC:
     return SAC(obs_dim, action_dim, make_sac_config("thesis", **{**SMALL, **overrides}), "cpu", seed)
 
@@ -105,7 +108,11 @@ def test_squashed_log_prob_against_numerical_density():
     ours = squashed_log_prob(u[:, None], torch.tensor([mean], dtype=torch.float64),
                              torch.tensor([math.log(std)], dtype=torch.float64)).numpy()
     inner = np.abs(a) < 0.999  # finite differences lose digits right at the edge
+    # float64 both sides; the reference's central difference has truncation ~h^2 |d3 atanh| / 6 and
+    # cancellation ~eps |atanh(a)| / h ~ 1e-9 relative (|a| < 0.999), <~1e-6 in the log: atol 1e-5 bounds it
     np.testing.assert_allclose(ours[inner], ref_logp[inner], atol=1e-5)
+    # the trapezoid rule on 4e5 points (error ~ h^2 f'' ~ 1e-11) misses the two tails beyond |a| = 1 - 5e-6,
+    # whose mass is P(|u| > atanh(1 - 5e-6) ~ 6.4) < 1e-9: 1e-4 is a loose bound on both
     assert abs(np.trapezoid(np.exp(ours), a) - 1.0) < 1e-4
 
     # 3-D: the log-prob is the sum of per-dimension 1-D log-probs
@@ -113,14 +120,15 @@ def test_squashed_log_prob_against_numerical_density():
     m, ls, u3 = rng.normal(size=3), rng.normal(size=3) * 0.3, rng.normal(size=(5, 3)) * 2
     per_dim = gauss_logpdf(u3, m, np.exp(ls)) - np.log(1 - np.tanh(u3) ** 2)
     got = squashed_log_prob(*(torch.from_numpy(x) for x in (u3, m, ls))).numpy()
-    np.testing.assert_allclose(got, per_dim.sum(-1), rtol=1e-10)
+    np.testing.assert_allclose(got, per_dim.sum(-1), rtol=1e-10)  # float64, ~10 roundings: ~1e-15
 
     # float32, far in the tail where log(1 - tanh(u)^2) is -inf in float32: still exact
     u_big = torch.tensor([[15.0, -12.0]])
     got32 = squashed_log_prob(u_big, torch.zeros(1, 2), torch.zeros(1, 2))
     ref = gauss_logpdf(np.array([15.0, -12.0]), 0, 1) + 2 * np.log(np.cosh([15.0, -12.0]))
     assert torch.isfinite(got32).all()
-    np.testing.assert_allclose(got32.item(), ref.sum(), rtol=1e-6)
+    # float32 result of ~110: the stable log(1 - tanh^2) and the Gaussian term, ~10 roundings: <= ~10 u32 (6e-7)
+    np.testing.assert_allclose(got32.item(), ref.sum(), rtol=16 * U32)
 
 
 def test_critic_loss_matches_float64_target():
@@ -154,10 +162,14 @@ def test_critic_loss_matches_float64_target():
     ref_q = np.stack([np_mlp(sa, critic_layers(agent.critic, i))[:, 0] for i in range(2)])
     ref_loss = 0.5 * ((ref_q - ref_target) ** 2).mean(1).sum()
 
+    # float32 networks of 3 layers of <= 8-term dot products (gamma_8 ~ 5e-7 of the summed magnitudes per
+    # layer, any order or FMA, on any CPU) plus exp/tanh/log (~1 ulp each): <~ 3e-6 of magnitudes O(1);
+    # rtol 1e-5, atol 1e-5 (1e-6 for q, whose inputs are exact float32 values) bound that with margin
     np.testing.assert_allclose(target.numpy(), ref_target, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(q.detach().numpy(), ref_q, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(loss.item(), ref_loss, rtol=1e-5)
-    assert target[1].item() == pytest.approx(reward[1].item(), abs=1e-7)  # terminated: no bootstrap
+    # terminated: r + gamma * 0 * (...) is r exactly (any finite bootstrap value)
+    assert target[1].item() == pytest.approx(reward[1].item(), abs=1e-7)
     assert abs(target[0].item() - reward[0].item()) > 1e-3  # time-out: bootstraps
 
 
@@ -187,6 +199,7 @@ def test_critic_ensemble_equals_separate_critics():
             for lin, w, b in zip(lins, ens.weights, ens.biases):
                 lin.weight.copy_(w[i].T)
                 lin.bias.copy_(b[i, 0])
+        # float64, two code paths (batched matmul vs nn.Linear): <= 16-term sums, ~3 layers: ~1e-14 at most
         torch.testing.assert_close(got[i], seq(torch.cat([obs, act], -1))[:, 0], rtol=1e-12, atol=1e-12)
     assert not torch.allclose(got[0], got[1])  # the critics are initialized independently
 
@@ -240,9 +253,12 @@ def test_polyak_update_is_tau_interpolation():
     target = [torch.randn(4, 3, generator=g), torch.randn(7, generator=g)]
     online = [torch.randn(4, 3, generator=g), torch.randn(7, generator=g)]
     ref = [t.double() + 0.005 * (o.double() - t.double()) for t, o in zip(target, online)]
+    bounds = [4 * U32 * torch.maximum(t.double().abs(), o.double().abs()) for t, o in zip(target, online)]
     soft_update_(target, online, 0.005)
-    for t, r in zip(target, ref):
-        torch.testing.assert_close(t.double(), r, rtol=0, atol=1e-6)
+    # float32 lerp t + tau (o - t): a subtraction, a product, a sum (or FMA), each <= u of a value <= 2 max(|t|, |o|)
+    # (was atol 1e-6, no origin: ~2 ulps of the largest draws)
+    for t, r, b in zip(target, ref, bounds):
+        assert bool(((t.double() - r).abs() <= b).all())
 
     # inside the agent: after one gradient step, target = old target + tau (new online - old target)
     agent = small_agent(tau=0.1)
@@ -253,7 +269,9 @@ def test_polyak_update_is_tau_interpolation():
     old = [p.detach().double().clone() for p in agent.critic_target.parameters()]
     agent.update(1)
     for t_old, t_new, o_new in zip(old, agent.critic_target.parameters(), agent.critic.parameters()):
-        torch.testing.assert_close(t_new.double(), t_old + 0.1 * (o_new.double() - t_old), rtol=0, atol=1e-6)
+        want = t_old + 0.1 * (o_new.double() - t_old)
+        bound = 4 * U32 * torch.maximum(t_old.abs(), o_new.double().abs())  # as above (was atol 1e-6)
+        assert bool(((t_new.double() - want).abs() <= bound).all())
 
 
 def test_replay_buffer_wraparound_and_sampling():
@@ -298,6 +316,9 @@ def test_obs_normalization_from_env_batches_only():
         all_obs.append(obs)
         agent.add(obs, torch.zeros(16, 2), torch.zeros(16), obs + 50, torch.zeros(16))  # next_obs never counted
     x = torch.cat(all_obs).double()
+    # float32 running statistics over 4 batches of 16 (rsl-rl's update: batch mean, weighted sums): ~10
+    # roundings of values <= |mean| + 3 std ~ 20, i.e. <~ 1e-5 absolute and relative; the std goes through
+    # a variance and a sqrt, so 1e-4 relative (both bound the float32 rounding, not the sampling)
     torch.testing.assert_close(agent.normalizer.mean.double(), x.mean(0), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(agent.normalizer.std.double(), x.std(0, unbiased=False), rtol=1e-4, atol=1e-5)
     before = agent.normalizer.state_dict()
@@ -317,6 +338,8 @@ def test_obs_normalization_from_env_batches_only():
         for z, stored in ((obs_n, raw), (next_n, raw + 50)):
             back = agent.normalizer.inverse(z)
             dist = (back[:, None, :] - stored[None]).abs().amax(-1).min(1).values
+            # normalize then invert in float32: ~4 roundings of values <= |x| + |mean|: ~1e-6 of the
+            # magnitude; 1e-4 of it keeps rows apart (distinct rows differ by far more)
             assert dist.max() < 1e-4 * stored.abs().max()
     # act() feeds the normalized observation to the actor
     obs = all_obs[0][:5]
@@ -339,6 +362,8 @@ def test_state_dict_round_trip_continues_identically():
     blob.seek(0)
     b = small_agent(seed=123)  # different init and generator: everything must come from the checkpoint
     b.load_state_dict(torch.load(blob, weights_only=False))
+    # bitwise: the same computation on the same machine and thread count, from the same state (across CPUs
+    # the float32 values differ in their last bits, but a and b always run side by side here)
     for k in range(2, 5):
         (sa, aa), (sb, ab) = step(a, k), step(b, k)
         np.testing.assert_equal(sa, sb)  # exact, NaN == NaN (no actor step in some calls)
@@ -431,11 +456,13 @@ def test_warmup_actions_uniform_or_the_untrained_actor():
     uniform = SAC(6, 4, make_sac_config("quick", hidden_dims=(32, 32)), seed=0)
     a = uniform.explore(obs)
     assert not uniform.ready() and a.abs().max() <= 1.0
-    # U(-1, 1): mean 0, std 1/sqrt(3) per dimension
+    # U(-1, 1): mean 0, std 1/sqrt(3) per dimension; the sample std of 4096 draws has standard error
+    # sqrt((1/5 - 1/9) / 4096) / (2 / sqrt(3)) ~ 0.004: atol 0.02 is 5 standard errors
     np.testing.assert_allclose(a.std(0).numpy(), 1 / math.sqrt(3), atol=0.02)
     policy = SAC(6, 4, make_sac_config("quick", hidden_dims=(32, 32), actor_init_std=0.05, warmup="policy"), seed=0)
     a = policy.explore(obs)
-    # tanh(N(0, 0.05^2)): std = 0.05 (1 - O(0.05^2)), mean 0
+    # tanh(N(0, 0.05^2)): std = 0.05 (1 - O(0.05^2)), mean 0. Sampling: the std's standard error is
+    # 0.05 / sqrt(2 * 4096) ~ 1.1 % (rtol 6 %: ~5 SE beyond the 0.5 % tanh bias), the mean's 0.05 / 64 ~ 8e-4
     np.testing.assert_allclose(a.std(0).numpy(), 0.05, rtol=0.06)
     assert a.mean(0).abs().max() < 0.01
     with pytest.raises(ValueError, match="warmup='greedy'.*uniform.*policy"):

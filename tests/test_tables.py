@@ -116,6 +116,7 @@ def test_reference_window_clamp(dt, h):
     assert w.shape == (n_steps + 1, h + 1) and w.dtype == torch.float64
     assert (w <= 1.0).all()
     grid = control_grid(dt)
+    # IEEE-only float64 (one division; below, a product and a sum): the same bits on any CPU, <= ~3 u64 of 1
     np.testing.assert_allclose(grid.numpy(), np.arange(n_steps + 1) / n_steps, rtol=0, atol=1e-15)
     assert grid[0] == 0.0 and grid[-1] == 1.0
     torch.testing.assert_close(w[:, 0], grid, rtol=0, atol=0)
@@ -137,12 +138,21 @@ def test_predict_eta_clamps_step_index(peg_tables):
     idx = torch.tensor([t.n_steps + 5, t.n_steps, 10_000, -3])
     out = t.predict_eta(idx, zeta)
     last = t.mean[-1] + torch.einsum("ij,ej->ei", t.gain[-1], zeta)
-    torch.testing.assert_close(out[:3], last[:3], rtol=0, atol=1e-15)
-    torch.testing.assert_close(out[3], t.mean[0] + t.gain[0] @ zeta[3], rtol=0, atol=1e-15)
+    # two float64 matmul paths (batched vs one matrix: MKL/BLAS kernels chosen per CPU), each within
+    # gamma_7 ~ 7 u64 of S = |m| + |B||zeta| (was atol 1e-15, no origin: ~S u64 * 9 for S ~ 1)
+    u64 = 2.0 ** -53
+    s_last = t.mean[-1].abs() + torch.einsum("ij,ej->ei", t.gain[-1].abs(), zeta.abs())
+    torch.testing.assert_close(out[:3], last[:3], rtol=0, atol=float(14 * u64 * s_last[:3].max()))
+    s_first = t.mean[0].abs() + t.gain[0].abs() @ zeta[3].abs()
+    torch.testing.assert_close(out[3], t.mean[0] + t.gain[0] @ zeta[3], rtol=0, atol=float(14 * u64 * s_first.max()))
     # float32 zeta: result in float32
     out32 = t.predict_eta(torch.tensor([3]), zeta[:1].float())
     assert out32.dtype == torch.float32
-    torch.testing.assert_close(out32.double(), t.predict_eta(torch.tensor([3]), zeta[:1]), rtol=1e-5, atol=1e-6)
+    # float32: m, B, zeta rounded (u32 each) and a 7-term float32 sum (7 u32): <= 9 u32 S; bound 16 u32 S
+    # (was rtol 1e-5, atol 1e-6, no origin)
+    s3 = t.mean[3].abs() + t.gain[3].abs() @ zeta[0].abs()
+    torch.testing.assert_close(out32.double(), t.predict_eta(torch.tensor([3]), zeta[:1]), rtol=0,
+                               atol=float(16 * 2.0 ** -24 * s3.max()))
 
 
 # ---------------------------------------------------------------------------------------
@@ -210,6 +220,8 @@ def test_predict_pose_matches_eta_to_pose(peg_tables, psi_ref):
     eta = t.predict_eta(idx, zeta)
     pos_ref, quat_ref = eta_to_pose(eta, target, psi_ref)
     assert pos.dtype == torch.float64 and quat.shape == (e, 4)
+    # the same torch ops on the same eta in one process (same machine): equal but for a batch-dependent
+    # kernel choice; 1e-15 (~9 u64 of values <= 1) bounds one 4-term product's rounding on each side
     torch.testing.assert_close(pos, pos_ref, rtol=0, atol=1e-15)
     torch.testing.assert_close(quat, quat_ref, rtol=0, atol=1e-15)
     torch.testing.assert_close(quat.norm(dim=-1), torch.ones(e, dtype=torch.float64), rtol=0, atol=1e-14)
