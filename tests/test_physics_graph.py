@@ -77,6 +77,8 @@ def test_graph_equals_eager(wp_cpu, family, action_dim, path):
     assert ref[BLOW_UP_AT]["physics_resets"].tolist() == [False, True, False, False]
     assert max(r["force_peak"].max().item() for r in ref) > 0.5  # in contact (N)
     assert eager.contact_overflows_total == 0  # PegInsert's default buffers hold its contacts
+    # bitwise: the SAME kernels, eager or replayed from a captured graph, on this machine (a CPU with other
+    # roundings changes both rollouts alike; the comparison never crosses machines)
     for i, (a, b) in enumerate(zip(ref, got)):
         for key in a:
             if a[key] is None:
@@ -146,6 +148,7 @@ def test_throughput_cli_times_both_modes(wp_cpu, tmp_path):
     assert [(r["task"], r["num_worlds"], r["mode"]) for r in results] == [("PegInsert", 1, "eager"),
                                                                           ("PegInsert", 1, "graph")]
     for r in results:
+        # float64 reciprocal and product: <= 2 u64 * 1e3 ~ 2e-13 (IEEE); 1e-6 bounds it
         assert r["env_steps_per_s"] > 0 and abs(r["ms_per_env_step"] * r["env_steps_per_s"] - 1e3) < 1e-6
     assert "split_ms_per_env_step" in results[0] and results[1]["speedup"] > 0
     with pytest.raises(SystemExit):  # never overwritten

@@ -216,6 +216,7 @@ def _check_reset_state(env, author):
             qw, qx, qy, qz = piece.quat_wxyz
             p_ref = fixed[w] + r_yaw @ np.array(piece.pos)
             q_ref = qmul(q_yaw, np.array([qx, qy, qz, qw]))
+            # float32 placement of positions < 1 m (a rotation and a sum: ~4 roundings of 6e-8): ~2.4e-7
             np.testing.assert_allclose(shape_tf[s, :3], p_ref, atol=2e-6, err_msg=labels[s])
             # float32 q_yaw (sin/cos, ~2 ulps) times the float32 local quaternion (4 rounded terms, ~4 ulps):
             # |q_ref . q| is 1 to ~6 * 1.19e-7 = 7e-7 on any CPU; 2e-6 leaves rounding-mode headroom
@@ -297,6 +298,8 @@ def test_observation_after_reset(peg_env):
     finally:
         env.cfg = saved
     assert forge.shape == (E, 11)
+    # the same float32 observation terms, by the same code, in one process: equal but for a fused or
+    # reordered float32 sum (<= a few 6e-8 of values < 1); 1e-7 bounds it
     np.testing.assert_allclose(forge[:, :8], obs, atol=1e-7)
     force = env.force_smoothed_w.double().numpy()
     assert np.all(np.abs(forge[:, 8:] - force) < 6.0)  # N(0, 1 N) observation noise
@@ -315,7 +318,7 @@ def test_step_zero_action_holds_and_plus_z_moves_up(peg_env):
     assert np.all(np.linalg.norm(tcp1 - tcp0, axis=1) < 0.002), tcp1 - tcp0
     assert np.all(-rot1[:, 2, 2] > math.cos(math.radians(3.0)))
     np.testing.assert_array_equal(env.episode_length_buf.numpy(), 1)
-    np.testing.assert_allclose(obs["policy"][:, 0].numpy(), 1.0 / 150.0, rtol=1e-6)
+    np.testing.assert_allclose(obs["policy"][:, 0].numpy(), 1.0 / 150.0, rtol=1e-6)  # one float32 division: <= u32/2
     assert not dones.any() and extras["log"]["/physics_resets"] == 0.0
     # not in the success state (peg ~15 mm above the hole): reward exactly 0
     peg_p, _ = held_frames(env)
@@ -408,6 +411,8 @@ def test_task_camera_pose_and_image(peg_env):
     for e in range(E):
         h = hand[e].double().numpy()
         r_hand = qmat(h[3:])
+        # float32 camera pose of positions < 1 m against float64 of the same float32 hand pose: ~6 roundings
+        # of 6e-8 (3.6e-7); unit vectors below: ~10 roundings of 6e-8
         np.testing.assert_allclose(poses[e, :3], h[:3] + r_hand @ np.array(spec.pos_hand), atol=1e-6)
         # Newton cameras look along their local -Z: that is the optical axis, the hand z tilted
         # 20 degrees about the hand y toward the gripper axis
@@ -514,7 +519,10 @@ def test_forge_held_mass_and_dead_zone_randomization(peg_env):
         inertia = env.body_inertia.double().numpy()[idx]
         inertia_nominal = env.held_inertia_nominal.double().numpy()
         for w in np.nonzero(m)[0]:
+            # float32 scaling of the inertia by mass / nominal: 2 roundings (<= 1.2e-7 relative); rtol 1e-5 bounds
+            # it, atol 1e-12 (kg m^2) covers the zero off-diagonal entries
             np.testing.assert_allclose(inertia[w], inertia_nominal[w] * mass[w] / nominal[w], rtol=1e-5, atol=1e-12)
+        # one float32 reciprocal: <= u32/2 = 3e-8 relative
         np.testing.assert_allclose(env.body_inv_mass.double().numpy()[idx], 1.0 / mass, rtol=1e-6)
         solver_masses = wp.to_torch(env.solver.mjw_model.body_mass).double().numpy().ravel()
         for w in np.nonzero(m)[0]:  # the solver got the new masses
@@ -632,6 +640,8 @@ def test_blowup_reset_settles_that_world_and_leaves_the_others_untouched(peg_env
         got.append(body_q(env))
     bpw = env.scene.bodies_per_world
     others = np.concatenate([np.arange(w * bpw, (w + 1) * bpw) for w in (0, 2, 3)])
+    # bitwise: both branches run here, in one process on one machine, from one snapshot (across CPUs the
+    # trajectories differ in their last bits, but never between these two branches)
     for ref, now in zip(reference, got):
         np.testing.assert_array_equal(now[others], ref[others])
     # the reset world's grasp has settled: over the next 12 control steps (0.8 s, zero action) the part

@@ -68,6 +68,7 @@ def test_invert_controller_applies_the_demonstrators_wrench():
         e_r = _rotvec_between(cmd_q[e], q[e])
         pre = kp[e] * np.r_[cmd_p[e] - x[e], e_r] - kd[e] * twist[e]
         applied = _dead_zone(pre, dead[e])
+        # float64 both ways: ~10 roundings of kp |x| <~ 300 N (cancelling in kp (cmd - x)): <~ 1e-12 N; 1e-7 N bounds it
         np.testing.assert_allclose(applied, np.r_[f_star, t_star], atol=1e-7, err_msg=f"world {e}")
     # sanity: the check can fail (a command at the reference does not apply F* under a dead zone)
     pre_naive = kp[-1] * np.r_[ref[-1] - x[-1], _rotvec_between(ref_q[-1], q[-1])] - kd[-1] * twist[-1]

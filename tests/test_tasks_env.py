@@ -61,6 +61,7 @@ def test_gear_grasp_and_target_frames(gear_episode):
     yaw = env.fixed_yaw
     q = quat_from_euler_xyz(torch.zeros_like(yaw), torch.zeros_like(yaw), yaw)
     shaft = env.fixed_pos_w + quat_rotate(q, torch.tensor([[GEAR_MEDIUM_X, 0.0, 0.0]]).expand(2, 3))
+    # float32 frames of positions < 1 m: a rotation and sums on each side, ~8 roundings of 6e-8 m (5e-7)
     torch.testing.assert_close(env.target_base_w, shaft, atol=1e-6, rtol=0)
     torch.testing.assert_close(env.fixed_tip_w - env.target_base_w, torch.tensor([[0.0, 0.0, 0.025]] * 2),
                                atol=1e-6, rtol=0)
