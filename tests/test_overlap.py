@@ -30,6 +30,7 @@ def test_without_updates_both_loops_store_the_same_transitions(run_py, wp_cpu, t
     overlap = _run(run_py, tmp_path, "overlap", "--overlap", total=24, learning_starts=10_000)
     a, b = serial["agent"]["buffer"], overlap["agent"]["buffer"]
     assert a["size"] == b["size"] == 24
+    # bitwise: two runs of the same computation on this machine, one after the other (same-machine determinism)
     for key in ("obs", "action", "reward", "next_obs"):
         assert torch.equal(a[key], b[key]), key
     assert serial["agent"]["counters"][2] == overlap["agent"]["counters"][2] == 0  # nothing learned
@@ -60,6 +61,7 @@ def test_overlap_is_deterministic_and_acts_one_update_late(run_py, wp_cpu, tmp_p
     assert serial_versions[-1] > serial_versions[4] > 0  # learning happened in the window
     # the same gradient steps in all (the last step's update runs after the loop)
     assert first["agent"]["counters"] == second["agent"]["counters"] == serial["agent"]["counters"]
+    # bitwise: two overlapped runs on this machine (same-machine determinism; never compared across CPUs)
     for name in ("actor", "critic", "critic_target"):
         for k, v in first["agent"][name].items():
             assert torch.equal(v, second["agent"][name][k]), (name, k)
