@@ -44,6 +44,8 @@ RUN_PY_CASES = [
     (["--kgrl-reach-floor", "nan", "--method", "kgrl"], "--kgrl-reach-floor must be a number of mm in [0, 50]"),
     (["--kgrl-reach-floor-z", "25", "--method", "sac"], "--kgrl-reach-floor-z is for the kgrl methods"),
     (["--kgrl-reach-floor-z", "-1", "--method", "kgrl"], "--kgrl-reach-floor-z must be a number of mm in [0, 50]"),
+    (["--kgrl-seat-press", "5", "--method", "sac"], "--kgrl-seat-press is for the kgrl methods"),
+    (["--kgrl-seat-press", "30", "--method", "kgrl"], "--kgrl-seat-press must be a number of mm in [0, 20]"),
     (["--sac", "prior_rollouts_policy=spiral"],
      "prior_rollouts_policy='spiral'; allowed: ['prior', 'search', 'scripted']"),
     (["--sac", "prior_rollouts=480", "--method", "sac"],  # a = 0 is KGRL's prior; SAC's rollouts are the demonstrator's

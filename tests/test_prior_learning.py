@@ -318,6 +318,30 @@ def test_prior_reg_adds_the_mean_penalty_and_pulls_toward_zero():
         make_sac_config("quick", prior_reg=-1.0)
 
 
+def test_seat_press_lowers_z_from_the_seat_on_by_a_hand_computed_ramp():
+    """with_seat_press (--kgrl-seat-press): m[n] z minus press * clip((n - n0 + 1) / 10, 0, 1), n0 the first row
+    within 1 mm of the last z, found here by a plain loop; x, y, rotation and the gains (the null space) untouched."""
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import fit_prior
+    from vkgrl_newton.kmp.tables import with_seat_press
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=2), 4)
+    press = 5e-3
+    pressed = with_seat_press(tables, press)
+    z = tables.mean[:, 2].numpy()
+    n0 = next(n for n in range(len(z)) if abs(z[n] - z[-1]) < 1e-3)
+    assert 0 < n0 < len(z) - 10  # the synthetic descent arrives before the end: the ramp is exercised whole
+    want = np.array([z[n] - press * min(max((n - n0 + 1) / 10.0, 0.0), 1.0) for n in range(len(z))])
+    # float64 both ways: one multiply and one subtract per row (~2 ulp of a ~0.03 m value, ~1e-17 m)
+    np.testing.assert_allclose(pressed.mean[:, 2].numpy(), want, rtol=0, atol=1e-15)
+    assert pressed.mean[n0 - 1, 2] == tables.mean[n0 - 1, 2] and pressed.mean[-1, 2] < tables.mean[-1, 2] - 0.99 * press
+    np.testing.assert_array_equal(np.delete(pressed.mean.numpy(), 2, axis=1), np.delete(tables.mean.numpy(), 2, axis=1))
+    assert torch.equal(pressed.gain, tables.gain) and with_seat_press(tables, 0.0) is tables
+    for bad in (-1e-3, math.nan, math.inf):
+        with pytest.raises(ValueError, match="seat press"):
+            with_seat_press(tables, bad)
+
+
 def test_reach_floor_lifts_short_axes_by_brute_force_over_the_action_corners():
     """Every corner of [-1, 1]^4 (the extremes of a linear map) moves x and y by at least the floor;
     axes already past it, the other axes and the prior's mean (a = 0) are untouched."""

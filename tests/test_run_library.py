@@ -70,7 +70,7 @@ def test_the_refusals_name_the_methods_of_the_table(argv, message):
 
 
 _ENV_FIELDS = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "geometry", "kgrl_recipe",
-               "demos", "num_demos", "kmp_reference", "kmp_params", "reach_floor_mm", "reach_floor_z_mm", "vae",
+               "demos", "num_demos", "kmp_reference", "kmp_params", "reach_floor_mm", "reach_floor_z_mm", "seat_press_mm", "vae",
                "device", "cache_dir", "latent_dim", "obs_dim")
 
 

@@ -137,6 +137,13 @@ def test_kgrl_action_path_applies_both_reach_floors(wp_cpu):
     n = env.step_index.long().clamp(max=tables.n_steps)
     # float32 kernel: positions < 1 m (ulp 6e-8) through a few additions; atol 1e-6 as the float64 reference test above
     np.testing.assert_allclose(pos0.numpy(), (env.target_frame_pos_w + tables.mean[n, :3].float()).numpy(), atol=1e-6)
+    # the seat press (--kgrl-seat-press) on top: a = 0 commands the pressed mean (with_seat_press's own test checks
+    # the ramp); the floors' gains are kept
+    pressed = KGRLActionPath(tables, env, reach_floor=2e-3, reach_floor_z=10e-3, seat_press=5e-3)
+    assert torch.equal(pressed.tables.gain, path.tables.gain) and not torch.equal(pressed.tables.mean, path.tables.mean)
+    pos1, _ = pressed.pose(torch.zeros(5, 4))
+    np.testing.assert_allclose(pos1.numpy(), (env.target_frame_pos_w + pressed.tables.mean[n, :3].float()).numpy(),
+                               atol=1e-6)
 
 
 def test_spiral_offset_is_archimedean_at_the_given_speed():
@@ -500,7 +507,7 @@ def test_a_kgrl_run_refuses_a_changed_prior_on_resume_and_evaluate(run_py, wp_cp
     # so is another reach floor, in one line, before the env is built (train() is never entered)
     with monkeypatch.context() as m:
         m.setattr("vkgrl_newton.run.train.train", lambda *a, **k: pytest.fail("train() entered before the refusal"))
-        for flag in ("--kgrl-reach-floor", "--kgrl-reach-floor-z"):
+        for flag in ("--kgrl-reach-floor", "--kgrl-reach-floor-z", "--kgrl-seat-press"):
             with pytest.raises(SystemExit) as exc:
                 run_py.main(["--run-dir", str(run_dir), "--resume", "--total-steps", "16", "--no-progress", flag, "3"])
             err = capsys.readouterr().err

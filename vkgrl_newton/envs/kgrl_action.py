@@ -24,7 +24,7 @@ import torch
 import warp as wp
 
 from ..kernels.kmp_horizon import kmp_horizon_pose, vec6f
-from ..kmp.tables import KMPTables, with_reach_floor
+from ..kmp.tables import KMPTables, with_reach_floor, with_seat_press
 
 __all__ = ["KGRLActionPath"]
 
@@ -33,7 +33,7 @@ class KGRLActionPath:
     """Maps policy actions to absolute TCP pose commands through the KMP tables, batched over worlds."""
 
     def __init__(self, tables: KMPTables, env, reach_floor: float = 0.0, reach_floor_z: float = 0.0,
-                 time_steps: int = 0):
+                 time_steps: int = 0, seat_press: float = 0.0):
         spec = env.task
         if tables.action_dim != env.num_actions:
             raise ValueError(f"KMP tables are {tables.action_dim}D, the env acts in {env.num_actions}D")
@@ -57,6 +57,9 @@ class KGRLActionPath:
         self.reach_floor, self.reach_floor_z = float(reach_floor), float(reach_floor_z)
         w6 = [spec.w_pos] * 3 + [spec.w_rot] * 3
         self.tables = with_reach_floor(with_reach_floor(tables, self.reach_floor, w6), self.reach_floor_z, w6, axes=(2,))
+        # seat_press (m): the prior's z lowered that much from its seat on (kmp.tables.with_seat_press); 0: the thesis
+        self.seat_press = float(seat_press)
+        self.tables = with_seat_press(self.tables, self.seat_press)
         tables = self.tables
         self.scale = torch.tensor(scale, dtype=torch.float32, device=tdev)
         self.zeta = torch.zeros(E, 6, dtype=torch.float32, device=tdev)

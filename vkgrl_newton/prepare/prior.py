@@ -75,10 +75,11 @@ def load_or_make_prior(task: str, action_dim: int, cache_dir, demos: str | Path 
     return tables, path
 
 
-def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0, reach_floor_z_mm: float = 0.0) -> dict:
+def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0, reach_floor_z_mm: float = 0.0,
+                 seat_press_mm: float = 0.0) -> dict:
     """What a KGRL run records of its prior (checkpoint meta "prior"): the demonstration file and its
     sha256, the KMP parameters and the number of demonstrations (`cache.check_unchanged` checks the file),
-    and the action path's reach floors (mm, x-y and z) where there are."""
+    and the action path's reach floors (mm, x-y and z) and seat press (mm) where there are."""
     record = {"demos": str(demos_path), "demos_sha256": file_sha256(demos_path), "lam": float(tables.lam),
               "beta": float(tables.beta), "l": float(tables.l),
               "num_demos": int(len(DemoSet.load(demos_path).demo_lengths))}
@@ -88,6 +89,8 @@ def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0, rea
         record["reach_floor_mm"] = float(reach_floor_mm)
     if reach_floor_z_mm > 0:
         record["reach_floor_z_mm"] = float(reach_floor_z_mm)
+    if seat_press_mm > 0:  # likewise
+        record["seat_press_mm"] = float(seat_press_mm)
     return record
 
 

@@ -77,7 +77,7 @@ def build_action_path(cfg: RunConfig, env, log=print):
 
     tables, demos_path = prior_tables(cfg, log)
     return KGRLActionPath(tables, env, reach_floor=1e-3 * cfg.reach_floor_mm, reach_floor_z=1e-3 * cfg.reach_floor_z_mm,
-                          time_steps=cfg.kgrl_time_action), demos_path
+                          time_steps=cfg.kgrl_time_action, seat_press=1e-3 * cfg.seat_press_mm), demos_path
 
 
 def prior_tables(cfg: RunConfig, log=print):

@@ -98,6 +98,7 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      kmp_reference=prior.get("reference", "gmr") if prior else args.kmp_reference,
                      kmp_params={k: prior[k] for k in ("lam", "beta", "l") if k in prior} or None,
                      reach_floor_mm=prior.get("reach_floor_mm", 0.0), reach_floor_z_mm=prior.get("reach_floor_z_mm", 0.0),
+                     seat_press_mm=prior.get("seat_press_mm", 0.0),
                      vae=Path(meta["vision"]["vae"]) if "vision" in meta else None,
                      kgrl_time_action=meta.get("kgrl_time_action", 0), tcp_velocity_obs=meta.get("tcp_velocity_obs", False),
                      force_obs=meta.get("force_obs", False),

@@ -89,7 +89,7 @@ OPTION_RULES = (
     ("--sac, --overlap, --no-time-obs, --cpu-matmul, --privileged-critic, --obs-history", "uses_sac"),
     ("--ppo", "uses_ppo"),
     ("--kgrl-recipe, --kgrl-time-action", "takes_recipe"),
-    ("--demos, --num-demos, --kmp-reference, --kgrl-reach-floor[-z]", "uses_kmp"),
+    ("--demos, --num-demos, --kmp-reference, --kgrl-reach-floor[-z], --kgrl-seat-press", "uses_kmp"),
     ("--vae", "vision"),
 )
 

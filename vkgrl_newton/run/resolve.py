@@ -308,7 +308,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         raise ConfigError(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another "
                           "directory")
     recipe = kgrl_recipe(ns, ns.preset)
-    floors = {key: float(given if given is not None else recipe[key]) for key, _, given in reach_floor_flags(ns)}
+    floors = {key: float(given if given is not None else recipe.get(key, 0.0)) for key, _, given in reach_floor_flags(ns)}
     reference, kmp_params = ns.kmp_reference or "gmr", None
     if payload is not None and "prior" in payload["meta"]:  # the KMP parameters it was fitted with
         prior = payload["meta"]["prior"]

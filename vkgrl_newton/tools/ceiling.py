@@ -391,17 +391,11 @@ PRIOR_PUSH_MM = 5.0
 
 
 def pushed_prior(tables, push: float):
-    """The prior's tables with m[n] z lowered by `push` (m) from the first step within 1 mm of its final height
-    on (ramped over 10 steps): what the prior would be had the demonstrations recorded the push."""
-    import torch
+    """The prior's tables with m[n] z lowered by `push` (m) from its seat on: kmp.tables.with_seat_press, the
+    tables of `--kgrl-seat-press`; what the prior would be had the demonstrations recorded the push."""
+    from ..kmp.tables import with_seat_press
 
-    mean = tables.mean.clone()
-    z = mean[:, 2]
-    near = torch.nonzero((z - z[-1]).abs() < 1e-3).flatten()
-    n0 = int(near[0]) if near.numel() else z.shape[0] - 1
-    ramp = ((torch.arange(z.shape[0], dtype=mean.dtype) - n0 + 1) / 10.0).clamp(0.0, 1.0)
-    mean[:, 2] = z - push * ramp
-    return replace(tables, mean=mean)
+    return with_seat_press(tables, push)
 
 
 def oracle_params(task: str):
