@@ -257,3 +257,25 @@ def test_oracle_mesh_yaw_turns_the_gear_to_a_gap(wp_cpu):
         else:
             assert a[e, 3] != 0
     assert unclipped >= 1
+
+
+def test_the_ceiling_table_is_the_committed_ceiling_runs():
+    """results/ceiling_table.csv (what the learning curves draw) against the JSONs of docs/results/ceiling_40 it
+    transcribes: each row's successes, episodes, eval seed and worlds recounted from the per-episode records."""
+    import json
+    from pathlib import Path
+
+    from vkgrl_newton.results.ceiling import ceiling_levels, load_ceiling
+
+    root = Path(__file__).resolve().parents[1] / "docs" / "results" / "ceiling_40"
+    rows = load_ceiling()
+    assert {r.task for r in rows} == {"PegInsert", "GearMesh", "NutThread"}
+    for r in rows:
+        data = json.loads((root / r.source).read_text())
+        records = data["controllers"][r.controller]["records"]
+        assert (data["task"], data["env"], data["action_dim"], data["eval_seed"], data["num_envs"]) == \
+            (r.task, r.env, r.action_dim, r.eval_seed, r.num_envs)
+        assert (sum(bool(e["success"]) for e in records), len(records)) == (r.successes, r.episodes), r
+        assert len(records) == data["num_envs"] * data["episodes_per_world"]
+    assert [c.controller for c in ceiling_levels("PegInsert", "factory", 4, 10000, 16)] == ["scripted", "oracle", "search"]
+    assert ceiling_levels("PegInsert", "factory", 4, 10001, 16) == [] and ceiling_levels("PegInsert", "forge", 4, 10000, 16) == []

@@ -691,8 +691,22 @@ def test_plot_runs_mean_and_std_over_seeds(tmp_path):
         got = summary[method]["episode/success_rate"]
         assert got["final_mean"] == pytest.approx(np.mean(vals), abs=1e-6)
         assert got["final_std"] == pytest.approx(np.std(vals), abs=1e-6)
+    # the success panel's levels: the thesis's Table 6.2 for each method; no prior (no metrics.json) and no
+    # ceiling (these configs name no evaluation episodes)
+    assert summary["reference_levels"] == {"thesis:kgrl": 0.797, "thesis:sac": 0.535}
     with pytest.raises(FileExistsError):
         plot_runs.plot(dirs, out)
+    # runs evaluated on the ceiling's episodes, with their prior: the prior's level and the task's ceiling join
+    for d in dirs:
+        config = json.loads((d / "config.json").read_text())
+        (d / "config.json").write_text(json.dumps({**config, "eval_seed": 10000, "num_envs": 16}))
+        (d / "metrics.json").write_text(json.dumps({"success_rate": 0.3, "prior_eval": {"success_rate": 0.140625}}))
+    levels = plot_runs.plot(dirs, tmp_path / "curves2.png")["reference_levels"]
+    assert levels == {"thesis:kgrl": 0.797, "thesis:sac": 0.535, "prior": 0.140625, "ceiling:scripted": 1.0,
+                      "ceiling:oracle": 1.0, "ceiling:search": 38 / 128}
+    # a prior evaluated differently in one run (another episode set): no single prior level is drawn
+    (dirs[0] / "metrics.json").write_text(json.dumps({"success_rate": 0.3, "prior_eval": {"success_rate": 0.5}}))
+    assert "prior" not in plot_runs.plot(dirs, tmp_path / "curves3.png")["reference_levels"]
 
 
 def test_run_geometry_is_part_of_a_mesh_runs_identity(run_py, tmp_path):

@@ -3,7 +3,11 @@ Figs. 6.11-6.18); the one plotting path of train/plot_runs.py and train/report.p
 
 Each group's curves are put on a common grid of env transitions (linear interpolation, up to the
 shortest run of the group) and drawn as mean +- one standard deviation (numpy's, ddof 0) across
-its seeds.
+its seeds. The success panel also draws the levels a learned curve is read against (`reference_levels`): the
+thesis's final success of each method, the KMP prior's (a = 0) on the runs' evaluation episodes, and the task's
+ceiling measured on those episodes (results.ceiling: the privileged scripted demonstrator and oracle, the blind
+search). The curve itself is the training episodes' success (stochastic actions, changing episodes); the levels
+are final evaluations: a curve near a level is comparable to it, not equal.
 """
 
 from __future__ import annotations
@@ -88,6 +92,53 @@ def mean_std(runs: list[tuple[np.ndarray, np.ndarray]], points: int = 100):
     return grid, stacked.mean(0), stacked.std(0)
 
 
+def reference_levels(run_dirs: list[Path], configs: list[dict]) -> list[tuple[str, float, str]]:
+    """(label, success rate, kind) of the levels drawn on the success panel, kind one of "thesis:<method>",
+    "prior", "ceiling:<controller>"; [] unless every run is of one task, family and action space. The prior's
+    level only where every run that has a metrics.json evaluated it on the same episodes with one result; the
+    ceiling only where every run's evaluation is the ceiling's (eval seed and worlds)."""
+    from vkgrl_newton.results.ceiling import ceiling_levels
+    from vkgrl_newton.results.thesis import load_thesis_tables
+
+    keys = {(c["task"], c["env"], c["action_dim"]) for c in configs}
+    if len(keys) != 1:
+        return []
+    task, env, dim = keys.pop()
+    levels = []
+    thesis = load_thesis_tables()
+    for method in sorted({c["method"] for c in configs}):
+        mean, _ = thesis.get(("success_rate", task, method, env, dim), (float("nan"), float("nan")))
+        if np.isfinite(mean):
+            levels.append((f"thesis {method} (1 M transitions) {mean:.3f}", float(mean), f"thesis:{method}"))
+    priors = set()
+    for run_dir in run_dirs:
+        path = Path(run_dir) / "metrics.json"
+        if path.exists():
+            prior = read_json_object(path, "run's metrics.json").get("prior_eval")
+            rate = prior.get("success_rate") if isinstance(prior, dict) else None
+            priors.add(rate if isinstance(rate, (int, float)) and not isinstance(rate, bool) else None)
+    if len(priors) == 1 and None not in priors:
+        rate = float(priors.pop())
+        levels.append((f"KMP prior (a = 0), final eval {rate:.3f}", rate, "prior"))
+    evals = {(c.get("eval_seed"), c.get("num_envs")) for c in configs}
+    if len(evals) == 1:
+        seed, worlds = evals.pop()
+        if isinstance(seed, int) and isinstance(worlds, int):
+            for c in ceiling_levels(task, env, dim, seed, worlds):
+                levels.append((f"{c.controller} (privileged)" if c.controller != "search" else "blind search",
+                               c.rate, f"ceiling:{c.controller}"))
+                label, rate, kind = levels[-1]
+                levels[-1] = (f"{label} {c.successes}/{c.episodes}", rate, kind)
+    return levels
+
+
+# line styles of the reference levels (the thesis's take the colour of their method's curve)
+_LEVEL_STYLE = {"prior": dict(color="0.45", linestyle=":", linewidth=1.5),
+                "ceiling:scripted": dict(color="black", linestyle="-", linewidth=0.8),
+                "ceiling:oracle": dict(color="black", linestyle="-.", linewidth=1.2),
+                "ceiling:search": dict(color="0.45", linestyle="-.", linewidth=1.2)}
+
+
 def plot(run_dirs: list[Path], out: Path, title: str | None = None) -> dict:
     """Learning curves of the runs, one line per method (group_label), mean +- std over seeds,
     to the PNG `out` (never overwritten); returns each group's final mean and std per panel."""
@@ -98,12 +149,17 @@ def plot(run_dirs: list[Path], out: Path, title: str | None = None) -> dict:
 
     groups: dict[str, list[dict]] = defaultdict(list)
     titles = set()
+    configs = []
+    method_of = {}
     for run_dir in run_dirs:
         config, curves = read_run(run_dir)
+        configs.append(config)
         groups[group_label(config)].append(curves)
+        method_of[group_label(config)] = config["method"]
         titles.add(f"{config['task']} {config['env']} {config['action_dim']}D")
     fig, axes = plt.subplots(1, len(PANELS), figsize=(5 * len(PANELS), 3.8))
     summary = {}
+    colours = {}
     for label, members in sorted(groups.items()):
         summary[label] = {"seeds": len(members)}
         for ax, (tag, name) in zip(axes, PANELS):
@@ -112,8 +168,19 @@ def plot(run_dirs: list[Path], out: Path, title: str | None = None) -> dict:
                 continue
             grid, mean, std = mean_std(runs)
             line, = ax.plot(grid, mean, label=f"{label} (n={len(runs)})")
+            colours.setdefault(method_of[label], line.get_color())
             ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
             summary[label][tag] = {"final_mean": float(mean[-1]), "final_std": float(std[-1])}
+    success_ax = axes[[tag for tag, _ in PANELS].index("episode/success_rate")]
+    levels = reference_levels(run_dirs, configs)
+    for label, rate, kind in levels:
+        style = _LEVEL_STYLE.get(kind) or dict(color=colours.get(kind.split(":", 1)[1], "C7"), linestyle="--",
+                                                linewidth=1.0)
+        success_ax.axhline(rate, label=label, **style)
+    summary["reference_levels"] = {kind: rate for _, rate, kind in levels}
+    if levels:
+        success_ax.set_ylim(-0.02, 1.02)
+        success_ax.legend(fontsize=7, loc="best")
     for ax, (_, name) in zip(axes, PANELS):
         ax.set_xlabel("env transitions")
         ax.set_ylabel(name)
