@@ -177,6 +177,9 @@ def test_sweep_finishes_retries_a_killed_trial_and_restarts_nothing(sweep_py, wp
         assert "success_rate" in assert_finished(d)
     summary = json.loads((out / "sweep_summary.json").read_text())
     assert summary[victim.relative_to(out).as_posix()]["attempts"] == 2
+    # a retried trial's queueing time would hold its lost attempt: not reported; a first attempt's is
+    assert "ray_s" not in summary[victim.relative_to(out).as_posix()]
+    assert summary["PegInsert_factory_4d_sac/seed0"]["ray_s"] >= 0
 
     # a finished sweep starts nothing; --status says done for every trial
     assert sweep_py.main(["--out", str(out)]) == 0

@@ -358,7 +358,10 @@ def sweep_summary(trials: list[dict]) -> dict:
         if state == "done" and "submitted_unix" in ts:
             training = read_json_object(run_dir / "metrics.json", "run's metrics").get("training")
             if isinstance(training, dict) and "first_transition_unix" in training:
-                record["ray_s"] = ts["started_unix"] - ts["submitted_unix"]  # queueing and a worker's start
+                # queueing and a worker's start; a retried trial's submission is its first attempt's, so its
+                # span would hold the lost attempts too: left out (its train.log has each attempt's times)
+                if ts.get("attempts", 1) == 1:
+                    record["ray_s"] = ts["started_unix"] - ts["submitted_unix"]
                 record["startup_s"] = training["first_transition_unix"] - ts["started_unix"]  # process, env, caches
         out[t["name"]] = record
     return out
