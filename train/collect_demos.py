@@ -18,7 +18,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # light modules only until the arguments are checked (see train/evaluate.py)
-from vkgrl_newton.cli_types import add_device_option, device_name, positive_int  # noqa: E402
+from vkgrl_newton._io import output_path_error  # noqa: E402
+from vkgrl_newton.cli_types import add_device_option, device_name, positive_int, seed_error  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.tasks import FAMILIES, TASKS  # noqa: E402
@@ -30,15 +31,17 @@ def main(argv=None) -> int:
     ap.add_argument("--env", default="factory", choices=FAMILIES)
     ap.add_argument("--num-demos", type=int, default=16)
     ap.add_argument("--num-envs", type=positive_int, default=16)
-    ap.add_argument("--max-episodes", type=int, default=20)
+    ap.add_argument("--max-episodes", type=positive_int, default=20, help="rounds of --num-envs episodes at most")
     ap.add_argument("--seed", type=int, default=0)
     add_device_option(ap)
     ap.add_argument("--out", type=Path, required=True, help="output .npz (never overwritten)")
     args = parse_cli(ap, argv, device=True)
     if args.num_demos < 2:
         ap.error("--num-demos must be >= 2 (a distribution needs several demonstrations)")
-    if args.out.exists():
-        ap.error(f"--out {args.out} exists; demonstrations are never overwritten")
+    if why := seed_error("--seed", args.seed):
+        ap.error(why)
+    if why := output_path_error(args.out, "--out", what="demonstrations"):  # (before recording: never lost at the end)
+        ap.error(why)
 
     import torch
 

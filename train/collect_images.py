@@ -24,7 +24,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton.cli_types import add_device_option, positive_int, device_name  # noqa: E402
+from vkgrl_newton._io import output_path_error  # noqa: E402
+from vkgrl_newton.cli_types import add_device_option, positive_int, device_name, seed_error  # noqa: E402
 
 from vkgrl_newton.envs.assembly_env import ACTION_DIMS, FAMILIES  # noqa: E402
 from vkgrl_newton.runtime import parse_cli  # noqa: E402
@@ -66,6 +67,10 @@ def main(argv=None) -> int:
     args = parse_cli(ap, argv, device=True)
     if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
         ap.error(f"--out {args.out} exists and is not an empty directory; image sets are never overwritten")
+    if why := output_path_error(args.out, "--out", may_exist=True):  # (an empty directory is allowed)
+        ap.error(why)
+    if args.seed is not None and (why := seed_error("--seed", args.seed)):
+        ap.error(why)
     import dataclasses
 
     try:

@@ -30,9 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # light modules only up to the argument checks (no torch, Warp or Newton): --help and argument errors
 # answer at once; the heavy modules load in main() once the arguments are checked
-from vkgrl_newton._io import atomic_write_text, strict_json  # noqa: E402
-from vkgrl_newton.cli_types import (add_cache_dir_option, add_device_option, add_eager_physics_flag,  # noqa: E402
-                                    add_eval_seed_option, add_kmp_reference_option, positive_int)
+from vkgrl_newton._io import atomic_write_text, output_path_error, strict_json  # noqa: E402
+from vkgrl_newton.cli_types import (EVAL_SEED_BITS, add_cache_dir_option, add_device_option,  # noqa: E402
+                                    add_eager_physics_flag, add_eval_seed_option, add_kmp_reference_option,
+                                    positive_int, seed_error)
 from vkgrl_newton.results.paired import EVAL_SEED  # noqa: E402
 from vkgrl_newton.run.config import ConfigError, add_cpu_matmul_option  # noqa: E402
 from vkgrl_newton.run.evaluate import POLICIES, checkpoint_config, evaluate_policy  # noqa: E402
@@ -75,10 +76,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     ap = build_parser()
     args = parse_cli(ap, argv, device=True)
-    for name in ("json", "video"):
+    for name in ("json", "video"):  # (checked before the evaluation: its result is never computed and then lost)
         out = getattr(args, name)
-        if out is not None and out.exists():
-            ap.error(f"--{name} {out} exists; choose another path (results are never overwritten)")
+        if out is not None and (why := output_path_error(out, f"--{name}")):
+            ap.error(why)
+    for why in (seed_error("--seed", args.seed), seed_error("--eval-seed", args.eval_seed, EVAL_SEED_BITS)):
+        if why:
+            ap.error(why)
     if args.stochastic and args.checkpoint is None:
         ap.error("--stochastic samples a trained policy's actions: give --checkpoint")
     if args.cpu_matmul is not None and args.checkpoint is None:

@@ -31,7 +31,7 @@ import numpy as np
 
 __all__ = ["atomic_write", "current_umask", "atomic_savez", "atomic_write_text", "strict_json", "load_npz", "NPZ_READ_ERRORS",
            "CHECKPOINT_FORMAT", "save_checkpoint", "load_checkpoint", "check_meta", "one_line", "short_repr",
-           "read_json_object", "check_finite", "check_npy_size"]
+           "read_json_object", "check_finite", "check_npy_size", "output_path_error"]
 
 CHECKPOINT_FORMAT = 1
 
@@ -90,6 +90,34 @@ def read_json_object(path, what: str) -> dict:
     if not isinstance(value, dict):
         raise ValueError(f"{path}: not a {what}: a JSON {type(value).__name__}, not an object")
     return value
+
+
+def output_path_error(path, flag: str, may_exist: bool = False, what: str = "results") -> str | None:
+    """Why a command cannot write its output at `path` (a file, or a directory it makes), in one line naming
+    `flag`, or None. Checked before any work, so that nothing is computed and then lost at the end: `path`
+    exists (unless `may_exist`: then an existing directory must take new files), a part of its path is a file,
+    or the deepest existing directory on it does not take a new file (tried: a probe file is made and removed;
+    permissions alone do not say it for root, /proc or a read-only mount)."""
+    path = Path(path)
+    if path.exists() or path.is_symlink():
+        if not may_exist:
+            return f"{flag} {path} exists; choose another path ({what} are never overwritten)"
+        if not path.is_dir():
+            return f"{flag} {path} is a file; give a directory"
+        where = path
+    else:
+        where = path.parent
+        while not where.exists() and where != where.parent:
+            where = where.parent
+        if not where.is_dir():
+            return f"{flag} {path}: {where} is a file, not a directory"
+    try:
+        fd, probe = tempfile.mkstemp(dir=where, prefix=".write-probe-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        return f"{flag} {path}: cannot write in {where} ({e.strerror or type(e).__name__})"
+    return None
 
 
 def atomic_write(path, overwrite: bool, write, suffix: str = ".tmp") -> Path:

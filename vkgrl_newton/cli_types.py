@@ -12,7 +12,8 @@ from contextlib import contextmanager
 
 __all__ = ["positive_int", "nonnegative_int", "positive_float", "device_name", "DEVICE_FORMS", "stderr_without",
            "add_verbose_flag", "add_device_option", "add_eager_physics_flag", "add_cache_dir_option",
-           "add_eval_seed_option", "add_kmp_reference_option", "KMP_REFERENCES"]
+           "add_eval_seed_option", "add_kmp_reference_option", "KMP_REFERENCES", "seed_error", "SEED_BITS",
+           "EVAL_SEED_BITS"]
 
 DEVICE_FORMS = "cpu, cuda, cuda:N"
 _DEVICE = re.compile(r"cpu|cuda(:[0-9]+)?")
@@ -46,6 +47,16 @@ def device_name(text: str) -> str:
     if not _DEVICE.fullmatch(text):
         raise argparse.ArgumentTypeError(f"{text!r} is not a device; allowed: {DEVICE_FORMS}")
     return text
+
+
+# the seeds every command line takes: a run's or an env's (--seed, gymnasium's seed=) and the evaluation episodes'
+# (--eval-seed, one integer that seeds every world: envs.vector)
+SEED_BITS, EVAL_SEED_BITS = 32, 63
+
+
+def seed_error(flag: str, value: int, bits: int = SEED_BITS) -> str | None:
+    """The refusal of a seed outside [0, 2**bits), in one line naming the flag, or None."""
+    return None if 0 <= value < 2**bits else f"{flag} {value}: must be in [0, 2**{bits})"
 
 
 def add_verbose_flag(parser) -> None:

@@ -81,6 +81,20 @@ class CollectConfig:
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"CollectConfig.{name}={getattr(self, name)!r}; allowed: >= 0 (m)")
         collect_camera_spec(self)  # the camera fields are checked by CameraSpec
+        if self.val_fraction > 0 and self.episodes() < 2:  # (ImageSetWriter's split would refuse it at the end)
+            raise ValueError(f"CollectConfig.num_images={self.num_images} with num_envs={self.num_envs} covers "
+                             f"{self.episodes()} episode; val_fraction={self.val_fraction} needs at least 2 (more "
+                             "images or worlds, or val_fraction=0)")
+
+    def episodes(self) -> int:
+        """How many episodes the images come from, at least (collect_images: a round of num_envs worlds stores a
+        frame of each every frame_stride control steps, the next round's worlds are new episodes)."""
+        from ..tasks import get_task
+
+        steps = min(self.episode_steps or get_task(self.task).episode_steps, get_task(self.task).episode_steps)
+        per_round = self.num_envs * math.ceil(steps / self.frame_stride)
+        return min(self.num_envs, self.num_images) + max(0, math.ceil((self.num_images - per_round) / per_round)) \
+            * self.num_envs
 
 
 def collect_camera_spec(cfg: CollectConfig):

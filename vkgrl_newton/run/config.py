@@ -18,8 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..agents.sac_config import CPU_MATMUL_CHOICES, SAC_PRESETS, SACConfig, make_sac_config
-from ..cli_types import (add_cache_dir_option, add_device_option, add_eager_physics_flag, add_eval_seed_option,
-                         add_kmp_reference_option, add_verbose_flag, positive_int)
+from ..cli_types import (EVAL_SEED_BITS, add_cache_dir_option, add_device_option, add_eager_physics_flag,
+                         add_eval_seed_option, add_kmp_reference_option, add_verbose_flag, positive_int, seed_error)
 from ..results.curves import CURVES_FILE
 from ..results.paired import EVAL_SEED
 from ..tasks import ACTION_DIMS, FAMILIES, GEOMETRIES, TASKS, VISION_LATENT_DIM, observation_dim
@@ -359,12 +359,12 @@ def check_scalars(ns) -> None:
                           "evaluation)")
     if ns.label is not None and not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", ns.label):
         raise ConfigError(f"--label {ns.label!r}: 1-40 characters of letters, digits, '_', '.', '-'")
-    if not 0 <= ns.eval_seed < 2**63:
-        raise ConfigError(f"--eval-seed {ns.eval_seed}: must be in [0, 2**63)")
+    if why := seed_error("--eval-seed", ns.eval_seed, EVAL_SEED_BITS):
+        raise ConfigError(why)
     if ns.num_demos < 2:
         raise ConfigError(f"--num-demos {ns.num_demos}: must be >= 2")
-    if not 0 <= ns.seed < 2**32:
-        raise ConfigError(f"--seed {ns.seed}: must be in [0, 2**32)")
+    if why := seed_error("--seed", ns.seed):
+        raise ConfigError(why)
     for flag, value, top in (("--kgrl-reach-floor", ns.kgrl_reach_floor, 50), ("--kgrl-reach-floor-z", ns.kgrl_reach_floor_z, 50),
                              ("--kgrl-seat-press", ns.kgrl_seat_press, SEAT_PRESS_MAX_MM)):
         if value is not None and METHODS[ns.method].uses_kmp and not (math.isfinite(value) and 0 <= value <= top):

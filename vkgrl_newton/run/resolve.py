@@ -13,6 +13,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from .._io import output_path_error
 from ..agents.ppo_config import METHOD_PPO_DEFAULTS, parse_ppo_overrides, ppo_train_cfg
 from ..agents.sac_config import SACConfig
 from ..cache import check_run_files
@@ -208,6 +209,9 @@ def _check_options(ns) -> None:
         raise ConfigError(f"--vae is for the vision methods ({names(vision=True)}), not {ns.method!r}")
     if ns.run_dir is not None and ns.run_dir.exists() and not ns.run_dir.is_dir():
         raise ConfigError(f"--run-dir {ns.run_dir} is a file; give a directory (new, or a run's with --resume)")
+    for flag, path in (("--run-dir", ns.run_dir), ("--cache-dir", ns.cache_dir)):  # (the default run dir: runs/train)
+        if why := output_path_error(path if path is not None else Path("runs/train"), flag, may_exist=True):
+            raise ConfigError(why)
 
 
 def _check_sac_options(ns, provisional: str):

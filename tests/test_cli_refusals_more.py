@@ -1,0 +1,99 @@
+"""The command lines as a new user meets them, beyond tests/test_cli_reliability.py (issue 41, item 5): output
+paths that cannot be written (refused before any work, not lost at the end in a traceback), seeds and counts
+out of range, files a tool would overwrite. Each refusal: exit 2, one `error:` line on stderr naming the flag
+and what is allowed, no traceback, nothing written."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+from scripts import ROOT
+
+from test_cli_reliability import HEAVY, LIGHT_PROBE
+
+UNWRITABLE = "/proc/vkgrl_no_such_dir/out"  # /proc takes no new file, not even root's
+
+
+def refused(argv: list[str], message: str, tmp_path, light: bool = False) -> str:
+    """Run `argv` (a script and its arguments, or -m module ...) and check it refuses in one line holding
+    `message`; with `light`, also that nothing heavy was imported to say it. Returns the line."""
+    if light:
+        cmd = [sys.executable, "-c", LIGHT_PROBE.format(script=argv[0], argv=argv[1:], heavy=HEAVY)]
+    else:
+        cmd = [sys.executable, *argv]
+    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    err = out.stderr.strip().splitlines()
+    if light:
+        assert out.stdout.strip().splitlines()[-1] == "EXIT 2 HEAVY []", out.stdout + out.stderr[-2000:]
+    else:
+        assert out.returncode == 2, out.stdout[-1000:] + out.stderr[-2000:]
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    assert [ln for ln in err if "error:" in ln] == [err[-1]], out.stderr[-2000:]  # one line, the last
+    assert message in err[-1], err[-1]
+    return err[-1]
+
+
+@pytest.fixture
+def a_file(tmp_path):
+    path = tmp_path / "a_file"
+    path.write_text("user data")
+    return path
+
+
+def _nothing_new(tmp_path, a_file):
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"] and a_file.read_text() == "user data"
+
+
+OUTPUTS = [  # (argv with {out} where the output path goes, the flag)
+    (["train/evaluate.py", "--device", "cpu", "--json", "{out}"], "--json"),
+    (["train/evaluate.py", "--device", "cpu", "--video", "{out}"], "--video"),
+    (["train/collect_demos.py", "--device", "cpu", "--out", "{out}"], "--out"),
+    (["train/collect_images.py", "--device", "cpu", "--out", "{out}"], "--out"),
+]
+
+
+@pytest.mark.parametrize("argv, flag", OUTPUTS, ids=lambda v: v[0].removeprefix("train/") if isinstance(v, list) else v)
+@pytest.mark.parametrize("where", ["unwritable", "under_a_file"])
+def test_an_output_path_that_cannot_be_written_is_refused_before_any_work(argv, flag, where, tmp_path, a_file):
+    """Before: the evaluation or the recording ran to its end, then a traceback (FileNotFoundError,
+    NotADirectoryError) and the result was lost."""
+    out = UNWRITABLE if where == "unwritable" else str(a_file / "x")
+    expected = f"{flag} {out}: " + ("cannot write in /proc" if where == "unwritable" else f"{a_file} is a file, not a directory")
+    refused([a.format(out=out) for a in argv], expected, tmp_path)
+    _nothing_new(tmp_path, a_file)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--run-dir", UNWRITABLE], f"--run-dir {UNWRITABLE}: cannot write in /proc"),
+    (["--run-dir", "{a_file}/run"], "--run-dir {a_file}/run: {a_file} is a file, not a directory"),
+    (["--run-dir", "{tmp}/run", "--cache-dir", "{a_file}"], "--cache-dir {a_file} is a file; give a directory"),
+    (["--run-dir", "{tmp}/run", "--cache-dir", UNWRITABLE], f"--cache-dir {UNWRITABLE}: cannot write in /proc"),
+    (["--run-dir", "{tmp}/run", "--seed", str(2**64)], f"--seed {2**64}: must be in [0, 2**32)"),
+])
+def test_run_py_refuses_a_run_or_cache_dir_it_cannot_write_before_any_heavy_import(argv, message, tmp_path, a_file):
+    """Before: run.py built the env (and its prerequisites) and failed writing config.json with a traceback."""
+    fill = {"tmp": tmp_path, "a_file": a_file}
+    refused(["train/run.py", *[a.format(**fill) for a in argv]], message.format(**fill), tmp_path, light=True)
+    _nothing_new(tmp_path, a_file)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["train/evaluate.py", "--device", "cpu", "--seed", "-1"], "--seed -1: must be in [0, 2**32)"),
+    (["train/evaluate.py", "--device", "cpu", "--eval-seed", str(2**63)], f"--eval-seed {2**63}: must be in [0, 2**63)"),
+    (["train/collect_demos.py", "--device", "cpu", "--out", "{tmp}/d.npz", "--seed", "-1"],
+     "--seed -1: must be in [0, 2**32)"),
+    (["train/collect_demos.py", "--device", "cpu", "--out", "{tmp}/d.npz", "--max-episodes", "0"],
+     "argument --max-episodes: must be an integer >= 1, got '0'"),
+    (["train/collect_images.py", "--device", "cpu", "--out", "{tmp}/i", "--seed", str(2**32)],
+     f"--seed {2**32}: must be in [0, 2**32)"),
+    (["train/collect_images.py", "--device", "cpu", "--out", "{tmp}/i", "--num-images", "40", "--num-envs", "1"],
+     "CollectConfig.num_images=40 with num_envs=1 covers 1 episode; val_fraction=0.1 needs at least 2"),
+])
+def test_seeds_and_counts_out_of_range_are_refused(argv, message, tmp_path, a_file):
+    """Before: a negative or too large seed was taken (run.py refused it, evaluate.py and the collections did
+    not); --max-episodes 0 built the env and recorded nothing; 40 images of one world (one episode) were
+    rendered, then a traceback from the train/validation split, and a half-written image set was left."""
+    refused([a.format(tmp=tmp_path) for a in argv], message, tmp_path)
+    _nothing_new(tmp_path, a_file)
