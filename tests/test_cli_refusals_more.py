@@ -97,3 +97,53 @@ def test_seeds_and_counts_out_of_range_are_refused(argv, message, tmp_path, a_fi
     rendered, then a traceback from the train/validation split, and a half-written image set was left."""
     refused([a.format(tmp=tmp_path) for a in argv], message, tmp_path)
     _nothing_new(tmp_path, a_file)
+
+
+GRID = ["--tasks", "PegInsert", "--envs", "factory", "--action-dims", "4", "--methods", "sac"]
+DIR_OUTPUTS = [  # (argv with {out}; {tmp} an empty directory of runs), before any run is read or Ray started
+    ["train/sweep.py", "--out", "{out}", *GRID, "--seeds", "0"],
+    ["train/report.py", "{tmp}", "--out", "{out}"],
+    ["train/plot_runs.py", "{tmp}", "--out", "{out}"],
+]
+
+
+@pytest.mark.parametrize("argv", DIR_OUTPUTS, ids=lambda v: v[0].removeprefix("train/"))
+@pytest.mark.parametrize("where", ["unwritable", "under_a_file"])
+def test_sweep_report_and_plot_runs_refuse_an_out_they_cannot_write(argv, where, tmp_path, a_file):
+    """Before: sweep.py's mkdir, report.py's staging directory (after the runs were read) and plot_runs.py's
+    figure (once drawn) ended in a traceback."""
+    out = UNWRITABLE if where == "unwritable" else str(a_file / "x")
+    expected = f"--out {out}: " + ("cannot write in /proc" if where == "unwritable" else f"{a_file} is a file, not a directory")
+    refused([a.format(out=out, tmp=tmp_path) for a in argv], expected, tmp_path, light=True)
+    _nothing_new(tmp_path, a_file)
+
+
+def test_sweep_refuses_an_out_that_is_a_file_and_a_seed_run_py_refuses(tmp_path, a_file):
+    """Before: `--out FILE` passed the checks and mkdir raised FileExistsError (a traceback); a seed >= 2**32
+    started the sweep, and every trial of it failed in run.py."""
+    refused(["train/sweep.py", "--out", str(a_file), *GRID, "--seeds", "0"], f"--out {a_file} is a file; give a "
+            "directory", tmp_path, light=True)
+    refused(["train/sweep.py", "--out", str(tmp_path / "s"), *GRID, "--seeds", "0", str(2**32)],
+            f"grid: seeds must be integers in [0, 2**32) (run.py's --seed), got [0, {2**32}]", tmp_path, light=True)
+    _nothing_new(tmp_path, a_file)
+
+
+def test_train_vae_refuses_an_out_it_cannot_write_before_training(tmp_path, a_file):
+    """Before: the model was built, then the run directory's mkdir raised (a traceback)."""
+    import numpy as np
+
+    from vkgrl_newton.vision.dataset import ImageSetWriter
+
+    images = tmp_path / "a_file.images"  # (beside a_file; removed below)
+    rng = np.random.default_rng(0)
+    with ImageSetWriter(images, num_images=4, resolution=32, task="PegInsert", val_fraction=0.5) as w:
+        w.add(rng.integers(0, 255, (4, 32, 32, 3), dtype=np.uint8), rng.normal(size=(4, 4)).astype(np.float32),
+              np.array([0, 0, 1, 1]))
+    for out, message in ((UNWRITABLE, f"--out {UNWRITABLE}: cannot write in /proc"),
+                         (f"{a_file}/vae", f"--out {a_file}/vae: {a_file} is a file, not a directory")):
+        refused(["train/train_vae.py", "--images", str(images), "--device", "cpu", "--epochs", "1", "--out", out],
+                message, tmp_path)
+    import shutil
+
+    shutil.rmtree(images)
+    _nothing_new(tmp_path, a_file)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton._io import one_line, read_json_object  # noqa: E402
+from vkgrl_newton._io import one_line, output_path_error, read_json_object  # noqa: E402
 from vkgrl_newton.results.curves import CURVE_KEYS, read_curves  # noqa: E402
 from vkgrl_newton.results.plots import plot, read_run_config  # noqa: E402
 
@@ -43,8 +43,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("runs/plots/learning_curves.png"), help="PNG (never overwritten)")
     ap.add_argument("--title", default=None)
     args = ap.parse_args(argv)
-    if args.out.exists():
-        ap.error(f"--out {args.out} exists; choose another path (files are never overwritten)")
+    if why := output_path_error(args.out, "--out", what="files"):  # (exists, or cannot be written)
+        ap.error(why)
     for d in args.run_dirs:
         if not (d / "config.json").exists():
             ap.error(f"{d} is not a train/run.py run directory (no config.json)")

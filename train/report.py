@@ -73,8 +73,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vkgrl_newton._io import (atomic_write, atomic_write_text, current_umask, one_line, read_json_object,  # noqa: E402
-                              short_repr, strict_json)
+from vkgrl_newton._io import (atomic_write, atomic_write_text, current_umask, one_line, output_path_error,  # noqa: E402
+                              read_json_object, short_repr, strict_json)
 from vkgrl_newton.agents.sac_config import SACConfig  # noqa: E402
 from vkgrl_newton.results.curves import CURVES_FILE, read_curves  # noqa: E402
 from vkgrl_newton.results.paired import paired_gain, world_outcomes  # noqa: E402
@@ -971,6 +971,8 @@ def main(argv=None) -> int:
         ap.error(f"--out {args.out} is a file; give a new or empty directory")
     if args.out.exists() and any(args.out.iterdir()):
         ap.error(f"--out {args.out} is not empty; choose another directory (reports are never overwritten)")
+    if why := output_path_error(args.out, "--out", may_exist=True):  # (checked before the runs are read)
+        ap.error(why)
     if args.from_stats:
         try:
             summary = write_restat(args.paths, args.out, reps=args.reps)

@@ -57,8 +57,8 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from vkgrl_newton._io import atomic_write_text, one_line, read_json_object  # noqa: E402
-from vkgrl_newton.cli_types import stderr_without  # noqa: E402
+from vkgrl_newton._io import atomic_write_text, one_line, output_path_error, read_json_object  # noqa: E402
+from vkgrl_newton.cli_types import SEED_BITS, stderr_without  # noqa: E402
 from vkgrl_newton.signals import describe, exit_code, stop_signals_as_interrupts  # noqa: E402
 from vkgrl_newton.run.methods import RUN_METHODS, THESIS_METHODS as METHODS  # noqa: E402
 from vkgrl_newton.tasks import ACTION_DIMS  # noqa: E402
@@ -107,8 +107,8 @@ def validate_grid(grid: dict) -> dict:
         if not isinstance(values, list) or not all(isinstance(v, (str, int)) for v in values):  # (JSON: no tuples)
             raise ValueError(f"grid: axis {axis!r} must be a list of names or numbers, got {one_line(repr(values), 100)}")
         if axis == "seeds":
-            if not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in values):
-                raise ValueError(f"grid: seeds must be non-negative integers, got {values!r}")
+            if not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 2**SEED_BITS for s in values):
+                raise ValueError(f"grid: seeds must be integers in [0, 2**{SEED_BITS}) (run.py's --seed), got {values!r}")
         else:
             bad = [v for v in values if isinstance(v, bool) or v not in ALLOWED[axis]]
             if bad:
@@ -239,6 +239,8 @@ def main(argv: list[str] | None = None) -> int:
     for flag in FORBIDDEN_RUN_ARGS:
         if any(a == flag or a.startswith(flag + "=") for a in run_args):
             ap.error(f"{flag} after `--`: the sweep sets it per trial (grid axes: {list(AXES)})")
+    if not args.status and (why := output_path_error(args.out, "--out", may_exist=True)):  # (before Ray starts)
+        ap.error(why)
     record_path = args.out / "sweep.json"
     given_grid = args.grid is not None or any(getattr(args, a) is not None for a in AXES)
     if record_path.exists():

@@ -183,6 +183,10 @@ def main(argv=None) -> int:
     out = args.out or Path("runs/vae") / f"{images.task}_r{images.resolution}_{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.resume and out.exists() and (not out.is_dir() or any(out.iterdir())):
         ap.error(f"--out {out} already holds a run; pass --resume to continue it or choose another directory")
+    from vkgrl_newton._io import output_path_error
+
+    if why := output_path_error(out, "--out", may_exist=True):  # (before the first epoch, not at its checkpoint)
+        ap.error(why)
     try:
         train_vae(images.dir, out, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                   kl_warmup_epochs=args.kl_warmup_epochs or 0, kl_weight=args.kl_weight,
