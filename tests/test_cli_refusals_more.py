@@ -147,3 +147,63 @@ def test_train_vae_refuses_an_out_it_cannot_write_before_training(tmp_path, a_fi
 
     shutil.rmtree(images)
     _nothing_new(tmp_path, a_file)
+
+
+TOOL_CASES = [  # (argv, what the line says); every tool's flags checked before it builds or times anything
+    (["-m", "vkgrl_newton.tools.ceiling", "--json", "{a_file}"],
+     "--json {a_file} exists; choose another path (results are never overwritten)"),
+    (["-m", "vkgrl_newton.tools.ceiling", "--json", "{tmp}/c.json", "--episodes-per-world", "0"],
+     "argument --episodes-per-world: must be an integer >= 1, got '0'"),
+    (["-m", "vkgrl_newton.tools.ceiling", "--json", "{tmp}/c.json", "--num-envs", "0"],
+     "argument --num-envs: must be an integer >= 1, got '0'"),
+    (["-m", "vkgrl_newton.tools.ceiling", "--json", "{tmp}/c.json", "--seed", "-1"], "--seed -1: must be in [0, 2**32)"),
+    (["-m", "vkgrl_newton.tools.ceiling", "--json", "{tmp}/c.json", "--perturb-kp-ulp", "-3"],
+     "argument --perturb-kp-ulp: must be an integer >= 0, got '-3'"),
+    (["-m", "vkgrl_newton.tools.ceiling", "--json", UNWRITABLE], f"--json {UNWRITABLE}: cannot write in /proc"),
+    (["-m", "vkgrl_newton.tools.bench_sac", "--steps", "0"], "argument --steps: must be an integer >= 1, got '0'"),
+    (["-m", "vkgrl_newton.tools.bench_sac", "--repeats", "0"], "argument --repeats: must be an integer >= 1, got '0'"),
+    (["-m", "vkgrl_newton.tools.bench_sac", "--hidden", "256", "0"], "argument --hidden: must be an integer >= 1, got '0'"),
+    (["-m", "vkgrl_newton.tools.bench_sac", "--threads", "-1"], "argument --threads: must be an integer >= 0, got '-1'"),
+    (["-m", "vkgrl_newton.tools.bench_sac", "--json", UNWRITABLE], f"--json {UNWRITABLE}: cannot write in /proc"),
+    (["-m", "vkgrl_newton.tools.bench_loop", "--json", UNWRITABLE], f"--json {UNWRITABLE}: cannot write in /proc"),
+    (["-m", "vkgrl_newton.tools.bench_kernels", "--json", "{a_file}/k.json"],
+     "--json {a_file}/k.json: {a_file} is a file, not a directory"),
+    (["-m", "vkgrl_newton.tools.throughput", "--device", "cpu", "--json", UNWRITABLE],
+     f"--json {UNWRITABLE}: cannot write in /proc"),
+]
+
+
+@pytest.mark.parametrize("argv, message", TOOL_CASES, ids=lambda v: "_".join(v[1:3]) if isinstance(v, list) else "")
+def test_the_tools_refuse_counts_seeds_and_outputs_before_working(argv, message, tmp_path, a_file):
+    """Before: ceiling overwrote an existing --json after its first controller, divided by zero after an
+    evaluation of 0 episodes per world, took a negative seed or ulp count (as 0); bench_sac timed 0 gradient
+    steps and reported 0 steps/s (--steps 0) or took the median of nothing (--repeats 0) after building its
+    agents; a --json that cannot be written was a traceback once the benchmark had run."""
+    fill = {"tmp": tmp_path, "a_file": a_file}
+    refused([a.format(**fill) for a in argv], message.format(**fill), tmp_path)
+    _nothing_new(tmp_path, a_file)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--lam", "-1"], "argument --lam: must be a finite number > 0, got '-1'"),
+    (["--lam-c", "nan"], "argument --lam-c: must be a finite number > 0, got 'nan'"),
+    (["--beta", "-0.5"], "argument --beta: must be a finite number >= 0, got '-0.5'"),
+    (["--seed", "-1"], "--seed -1: must be in [0, 2**32)"),
+    (["--num-demos", "1"], "--num-demos 1: must be >= 2"),
+])
+def test_plot_kmp_refuses_kmp_parameters_before_drawing_demonstrations(argv, message, tmp_path, a_file):
+    """Before: --lam -1 or --l 0 wrote the synthetic demonstrations to --out, then refused without naming the
+    flag; --lam-c nan, after fitting, was a traceback; --seed -1 `expected non-negative integer`."""
+    refused(["train/plot_kmp.py", "--synthetic", "PegInsert", "--out", str(tmp_path / "k"), *argv], message, tmp_path)
+    _nothing_new(tmp_path, a_file)
+
+
+@pytest.mark.parametrize("out, message", [
+    ("{a_file}", "--out {a_file} is a file; give a directory"),
+    (UNWRITABLE, f"--out {UNWRITABLE}: cannot write in /proc"),
+])
+def test_plot_kmp_refuses_an_out_it_cannot_write(out, message, tmp_path, a_file):
+    """Before: a traceback (FileExistsError, FileNotFoundError) from the synthetic set's mkdir."""
+    refused(["train/plot_kmp.py", "--synthetic", "PegInsert", "--out", out.format(a_file=a_file)],
+            message.format(a_file=a_file), tmp_path)
+    _nothing_new(tmp_path, a_file)

@@ -42,6 +42,8 @@ from vkgrl_newton.kmp import (  # noqa: E402
     load_or_fit_prior,
     synthetic_demos,
 )
+from vkgrl_newton._io import output_path_error  # noqa: E402
+from vkgrl_newton.cli_types import nonnegative_float, positive_float, seed_error  # noqa: E402
 from vkgrl_newton.kmp.prior import format_prior_fit, prior_fit  # noqa: E402
 from vkgrl_newton.signals import run_cli  # noqa: E402
 from vkgrl_newton.kmp.tables import control_grid  # noqa: E402
@@ -59,15 +61,22 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--action-dim", type=int, choices=(4, 6), default=None,
                    help="4 (xyz + yaw) or 6; default: the demonstrations' own")
-    p.add_argument("--lam", type=float, default=KMP_LAMBDA)
-    p.add_argument("--beta", type=float, default=KMP_BETA)
-    p.add_argument("--l", type=float, default=KMP_L, help="kernel exp(-l (s_i - s_j)^2)")
+    p.add_argument("--lam", type=positive_float, default=KMP_LAMBDA)
+    p.add_argument("--beta", type=nonnegative_float, default=KMP_BETA)
+    p.add_argument("--l", type=positive_float, default=KMP_L, help="kernel exp(-l (s_i - s_j)^2)")
     p.add_argument("--reference", choices=("gmr", "empirical"), default="gmr",
                    help="the KMP's reference distribution: gmr (the thesis) or empirical (the demonstrations' "
                         "per-step mean and covariance)")
-    p.add_argument("--lam-c", type=float, default=60.0, help="lambda of the KMP covariance, eq. 3.37 (Huang: 60)")
+    p.add_argument("--lam-c", type=positive_float, default=60.0, help="lambda of the KMP covariance, eq. 3.37 (Huang: 60)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: beside the demonstrations)")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    # (checked before the synthetic demonstrations are drawn and written to --out)
+    if args.num_demos < 2:
+        p.error(f"--num-demos {args.num_demos}: must be >= 2 (a distribution needs several demonstrations)")
+    for why in (seed_error("--seed", args.seed), args.out and output_path_error(args.out, "--out", may_exist=True)):
+        if why:
+            p.error(why)
+    return args
 
 
 def synthetic_demo_file(task: str, num_demos: int, action_dim: int, seed: int, out: Path) -> Path:

@@ -10,7 +10,7 @@ import sys
 import tempfile
 from contextlib import contextmanager
 
-__all__ = ["positive_int", "nonnegative_int", "positive_float", "device_name", "DEVICE_FORMS", "stderr_without",
+__all__ = ["positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "device_name", "DEVICE_FORMS", "stderr_without",
            "add_verbose_flag", "add_device_option", "add_eager_physics_flag", "add_cache_dir_option",
            "add_eval_seed_option", "add_kmp_reference_option", "KMP_REFERENCES", "seed_error", "SEED_BITS",
            "EVAL_SEED_BITS"]
@@ -39,6 +39,10 @@ def nonnegative_int(text: str) -> int:
 
 def positive_float(text: str) -> float:
     return _number(text, float, lambda v: math.isfinite(v) and v > 0, "a finite number > 0")
+
+
+def nonnegative_float(text: str) -> float:
+    return _number(text, float, lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0")
 
 
 def device_name(text: str) -> str:

@@ -38,7 +38,7 @@ import torch
 import warp as wp
 
 from ..assets_usd.dimensions import FACTORY_NULL_JOINTS, FACTORY_RESET_JOINTS
-from .._io import atomic_write_text, strict_json
+from .._io import atomic_write_text, output_path_error, strict_json
 from ..cli_types import device_name
 from ..runtime import cpu_model, device_error, parse_cli
 from ..signals import run_cli
@@ -400,8 +400,8 @@ def main(argv=None) -> int:
     if args.only is not None and set(args.only) - {c.name for c in CASES}:
         p.error(f"--only {sorted(set(args.only) - {c.name for c in CASES})}: unknown; cases are {[c.name for c in CASES]}")
     out = Path(args.json or f"runs/bench/kernels_{time.strftime('%Y%m%d-%H%M%S')}.json")
-    if out.exists():  # checked before the benchmark runs, not after
-        p.error(f"--json {out} exists; choose another path (results are never overwritten)")
+    if why := output_path_error(out, "--json"):  # checked before the benchmark runs, not after
+        p.error(why)
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
 

@@ -39,6 +39,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from .._io import output_path_error
 from ..cli_types import add_cache_dir_option, positive_int
 from ..runtime import parse_cli
 from ..signals import run_cli
@@ -212,8 +213,8 @@ def main(argv=None) -> int:
     args = parse_cli(ap, argv)
     if args.transitions <= 1_024 + 16:
         ap.error("--transitions must be > 1040: the first 1 024 (learning_starts) are not counted")
-    if args.json is not None and args.json.exists():
-        ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
+    if args.json is not None and (why := output_path_error(args.json, "--json")):
+        ap.error(why)
     import torch
 
     from .._io import atomic_write_text

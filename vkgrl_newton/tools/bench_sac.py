@@ -32,11 +32,11 @@ from typing import Callable
 import numpy as np
 import torch
 
-from .._io import atomic_write_text
+from .._io import atomic_write_text, output_path_error
 from ..agents.dense import onednn_available
 from ..agents.matmul_backend import CHOICE_FILE, choose_cpu_matmul
 from ..agents.sac import SAC, make_sac_config
-from ..cli_types import add_cache_dir_option, add_device_option
+from ..cli_types import add_cache_dir_option, add_device_option, nonnegative_int, positive_int
 from ..run.config import add_cpu_matmul_option
 from ..runtime import cpu_model, device_error, parse_cli
 from ..signals import run_cli
@@ -106,14 +106,14 @@ def make_sb3(args: argparse.Namespace, data: dict[str, np.ndarray]) -> Callable[
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_device_option(p, default="cpu")
-    p.add_argument("--steps", type=int, default=50, help="gradient steps per timed call")
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--obs-dim", type=int, default=8)
-    p.add_argument("--action-dim", type=int, default=4)
-    p.add_argument("--batch-size", type=int, default=256)
-    p.add_argument("--hidden", type=int, nargs="+", default=[512, 256, 128])
-    p.add_argument("--fill", type=int, default=20_000, help="random transitions in the replay buffer")
-    p.add_argument("--threads", type=int, default=None,
+    p.add_argument("--steps", type=positive_int, default=50, help="gradient steps per timed call")
+    p.add_argument("--repeats", type=positive_int, default=5)
+    p.add_argument("--obs-dim", type=positive_int, default=8)
+    p.add_argument("--action-dim", type=positive_int, default=4)
+    p.add_argument("--batch-size", type=positive_int, default=256)
+    p.add_argument("--hidden", type=positive_int, nargs="+", default=[512, 256, 128])
+    p.add_argument("--fill", type=positive_int, default=20_000, help="random transitions in the replay buffer")
+    p.add_argument("--threads", type=nonnegative_int, default=None,
                    help="torch intra-op threads (default: torch's). On a shared 2-core CPU, 1 avoids OpenMP "
                         "barriers stalling whenever another process holds a core")
     add_cpu_matmul_option(p, "ours_thesis's and ours_delay1's CPU matmul library (default auto: this machine's "
@@ -121,8 +121,8 @@ def main(argv: list[str] | None = None) -> dict:
     add_cache_dir_option(p)
     p.add_argument("--json", type=Path, default=None)
     args = parse_cli(p, argv)
-    if args.json is not None and args.json.exists():
-        p.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
+    if args.json is not None and (why := output_path_error(args.json, "--json")):
+        p.error(why)
     if (why := device_error(args.device)) is not None:
         p.error(why)
     if args.threads:

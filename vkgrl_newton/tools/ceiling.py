@@ -35,6 +35,8 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from .._io import output_path_error
+from ..cli_types import EVAL_SEED_BITS, nonnegative_int, positive_int, seed_error
 from ..assets_usd.dimensions import (BOLT_CORE_RADIUS, BOLT_TIP_HEIGHT, GEAR_BASE_HEIGHT, GEAR_BORE_APOTHEM, GEAR_HEIGHT,
                                      GEAR_SHAFT_RADIUS, GEAR_TEETH, GEAR_TOOTH_CLEARANCE, HOLE_CHAMFER, HOLE_DEPTH, HOLE_DIAMETER,
                                      NUT_BORE_APOTHEM, PEG_DIAMETER, THREAD_BOLT_TOP, THREAD_CAPSULE_RADIUS,
@@ -410,17 +412,23 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m vkgrl_newton.tools.ceiling", description=__doc__.split("\n\n")[0])
     ap.add_argument("--task", default="PegInsert", choices=sorted(CEILING_GEOMETRY))
     ap.add_argument("--controllers", nargs="+", default=list(CONTROLLERS), choices=CONTROLLERS)
-    ap.add_argument("--episodes-per-world", type=int, default=8)
-    ap.add_argument("--num-envs", type=int, default=16)
+    ap.add_argument("--episodes-per-world", type=positive_int, default=8)
+    ap.add_argument("--num-envs", type=positive_int, default=16)
     ap.add_argument("--eval-seed", type=int, default=10_000)
     ap.add_argument("--seed", type=int, default=0, help="the env's construction and the demonstrator's draws")
-    ap.add_argument("--perturb-kp-ulp", type=int, default=0, help="OSC gains this many float32 ulps up (sensitivity)")
-    ap.add_argument("--demos-kp-ulp", type=int, default=0,
+    ap.add_argument("--perturb-kp-ulp", type=nonnegative_int, default=0,
+                    help="OSC gains this many float32 ulps up (sensitivity)")
+    ap.add_argument("--demos-kp-ulp", type=nonnegative_int, default=0,
                     help="record the prior's demonstrations with the OSC gains this many ulps up (into an empty "
                          "--cache-dir) and evaluate the prior fitted to them")
     ap.add_argument("--cache-dir", default="runs/cache")
-    ap.add_argument("--json", type=Path, required=True, help="output (rewritten after each controller)")
+    ap.add_argument("--json", type=Path, required=True,
+                    help="output, a new file (never overwritten; rewritten after each controller of this run)")
     args = ap.parse_args(argv)
+    for why in (seed_error("--seed", args.seed), seed_error("--eval-seed", args.eval_seed, EVAL_SEED_BITS),
+                output_path_error(args.json, "--json")):  # (checked before the controllers run for minutes)
+        if why:
+            ap.error(why)
 
     from ..runtime import configure_warp, cpu_model
 
@@ -431,7 +439,10 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(1)
     if args.demos_kp_ulp:
-        record_perturbed_demos(args.task, args.cache_dir, args.demos_kp_ulp, args.seed)
+        try:
+            record_perturbed_demos(args.task, args.cache_dir, args.demos_kp_ulp, args.seed)
+        except FileExistsError as e:  # (checked before recording)
+            ap.error(f"--demos-kp-ulp {args.demos_kp_ulp}: {e}")
     env, tables, demos = build(args.task, args.num_envs, args.cache_dir, args.seed)
     cpu = cpu_model()
     out = {"task": args.task, "env": "factory", "action_dim": 4, "num_envs": args.num_envs,

@@ -40,7 +40,7 @@ from pathlib import Path
 import torch
 import warp as wp
 
-from .._io import atomic_write_text
+from .._io import atomic_write_text, output_path_error
 from ..cli_types import add_device_option, device_name
 from ..runtime import parse_cli
 from ..signals import run_cli
@@ -138,8 +138,8 @@ def main(argv=None) -> int:
     if args.warmup < 2 and "graph" in MODES[args.graph]:
         ap.error("--warmup must be >= 2 with a graph: the first step runs eagerly, the second records the graph "
                  "(neither is to be timed)")
-    if args.json is not None and args.json.exists():
-        ap.error(f"--json {args.json} exists; choose another path (results are never overwritten)")
+    if args.json is not None and (why := output_path_error(args.json, "--json")):
+        ap.error(why)
     from ..prepare.vision import VISION_PRESETS
 
     if args.vision is not None and args.vision not in VISION_PRESETS:
