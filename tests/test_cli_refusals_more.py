@@ -207,3 +207,19 @@ def test_plot_kmp_refuses_an_out_it_cannot_write(out, message, tmp_path, a_file)
     refused(["train/plot_kmp.py", "--synthetic", "PegInsert", "--out", out.format(a_file=a_file)],
             message.format(a_file=a_file), tmp_path)
     _nothing_new(tmp_path, a_file)
+
+
+@pytest.mark.parametrize("env_id", ["VKGRL/PegInsert-Factory-4D-KGRL-v0", "VKGRL/PegInsert-Factory-4D-Vision-v0"])
+def test_gymnasium_refuses_a_cache_dir_its_prerequisites_cannot_be_written_to(env_id, tmp_path, a_file):
+    """Before: a NotADirectoryError traceback from the cache's mkdir (the KGRL and Vision ids make their
+    demonstrations, tables, image set and VAE there)."""
+    import gymnasium as gym
+
+    import vkgrl_newton  # noqa: F401  (registers the ids)
+
+    for cache_dir, message in ((a_file, f"cache_dir {a_file} is a file; give a directory"),
+                               (UNWRITABLE, f"cache_dir {UNWRITABLE}: cannot write in /proc")):
+        with pytest.raises(ValueError) as e:
+            gym.make_vec(env_id, num_envs=1, device="cpu", cache_dir=cache_dir)
+        assert message in str(e.value) and "\n" not in str(e.value)
+    _nothing_new(tmp_path, a_file)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from .._io import output_path_error
 from ..envs.vector import RENDER_MODES, AssemblySingleEnv, AssemblyVectorEnv, check_vector_kwargs
 from .config import ConfigError, RunConfig
 from .methods import METHODS
@@ -41,6 +42,9 @@ def gym_config(task: str = "PegInsert", family: str = "factory", action_dim: int
     for name, value in (("cache_dir", cache_dir), ("demos", demos), ("vae", vae)):
         if value is not None and not isinstance(value, (str, Path)):
             raise ValueError(f"{name}={value!r} is not allowed; allowed: a path (str or pathlib.Path)")
+    if method in METHODS and (METHODS[method].uses_kmp or METHODS[method].vision) \
+            and (why := output_path_error(cache_dir, "cache_dir", may_exist=True)):  # (the prerequisites go there)
+        raise ValueError(why)
     if method not in METHODS or METHODS[method].uses_ppo:
         raise ValueError(f"method={method!r} is not allowed; allowed: "
                          f"{[m for m, row in METHODS.items() if not row.uses_ppo]} (an id is an env, not a learner)")
