@@ -164,6 +164,8 @@ TOOL_CASES = [  # (argv, what the line says); every tool's flags checked before 
     (["-m", "vkgrl_newton.tools.bench_sac", "--repeats", "0"], "argument --repeats: must be an integer >= 1, got '0'"),
     (["-m", "vkgrl_newton.tools.bench_sac", "--hidden", "256", "0"], "argument --hidden: must be an integer >= 1, got '0'"),
     (["-m", "vkgrl_newton.tools.bench_sac", "--threads", "-1"], "argument --threads: must be an integer >= 0, got '-1'"),
+    (["-m", "vkgrl_newton.tools.bench_sac", "--batch-size", "512", "--fill", "256"],
+     "--batch-size 512: must be <= --fill 256"),
     (["-m", "vkgrl_newton.tools.bench_sac", "--json", UNWRITABLE], f"--json {UNWRITABLE}: cannot write in /proc"),
     (["-m", "vkgrl_newton.tools.bench_loop", "--json", UNWRITABLE], f"--json {UNWRITABLE}: cannot write in /proc"),
     (["-m", "vkgrl_newton.tools.bench_kernels", "--json", "{a_file}/k.json"],
@@ -223,3 +225,17 @@ def test_gymnasium_refuses_a_cache_dir_its_prerequisites_cannot_be_written_to(en
             gym.make_vec(env_id, num_envs=1, device="cpu", cache_dir=cache_dir)
         assert message in str(e.value) and "\n" not in str(e.value)
     _nothing_new(tmp_path, a_file)
+
+
+def test_plot_kmp_refuses_to_overwrite_its_plot(tmp_path):
+    """Before: a second plot_kmp into the same --out replaced the first plot (perhaps of other KMP parameters)
+    silently. Now the second is refused in one line and the first plot is kept byte for byte."""
+    out = tmp_path / "k"
+    first = subprocess.run([sys.executable, "train/plot_kmp.py", "--synthetic", "PegInsert", "--action-dim", "4",
+                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr[-2000:]
+    png = out / "kmp_PegInsert_4d.png"
+    before = png.read_bytes()
+    refused(["train/plot_kmp.py", "--synthetic", "PegInsert", "--action-dim", "4", "--lam", "2", "--out", str(out)],
+            "kmp_PegInsert_4d.png exists; choose another --out", tmp_path)
+    assert png.read_bytes() == before

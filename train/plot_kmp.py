@@ -149,6 +149,11 @@ def main(argv=None) -> int:
                 return 2
             out = args.out or demo_path.parent
         demos = DemoSet.load(demo_path)
+        png = out / f"kmp_{demos.task}_{args.action_dim or demos.action_dim}d.png"
+        if png.exists():  # a plot of other parameters is a result too: never overwritten (before the fit)
+            print(f"error: --out {out}: {png.name} exists; choose another --out or move it (plots are never "
+                  "overwritten)", file=sys.stderr)
+            return 2
         tables, tables_path, rebuilt = load_or_fit_prior(
             demo_path, args.action_dim, args.lam, args.beta, args.l, seed=args.seed, reference=args.reference
         )
@@ -156,7 +161,7 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     action_dim = tables.action_dim
-    png = plot_prior(demos, tables, args.lam, args.lam_c, out / f"kmp_{demos.task}_{action_dim}d.png")
+    png = plot_prior(demos, tables, args.lam, args.lam_c, out / f"kmp_{demos.task}_{action_dim}d.png")  # (= png)
     print(f"demonstrations: {demo_path} ({demos.num_demos} x {demos.source})")
     print(f"KMP tables:     {tables_path} ({'fitted' if rebuilt else 'cached'})")
     print(f"plot:           {png}")

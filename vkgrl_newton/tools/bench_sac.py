@@ -123,6 +123,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = parse_cli(p, argv)
     if args.json is not None and (why := output_path_error(args.json, "--json")):
         p.error(why)
+    if args.batch_size > args.fill:  # a batch is drawn from the filled buffer
+        p.error(f"--batch-size {args.batch_size}: must be <= --fill {args.fill} (the replay buffer's transitions)")
     if (why := device_error(args.device)) is not None:
         p.error(why)
     if args.threads:
