@@ -17,6 +17,7 @@ settings otherwise), so that the vision prerequisites take seconds.
 
 import os
 import runpy
+import signal
 import sys
 import time
 from pathlib import Path
@@ -99,6 +100,10 @@ def install_hold(hold: str, marker: Path) -> None:
 
 
 def main() -> None:
+    # Ctrl-C's KeyboardInterrupt, whatever this process inherited: a background job of a non-interactive shell
+    # (`cmd &` in a CI script) starts with SIGINT ignored, and Python then installs no handler of its own, so the
+    # tests' SIGINT would be lost and the held phase would run on
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     marker, hold, mode, *rest = sys.argv[1:]
     if spec := os.environ.get("VKGRL_TEST_VISION"):
         from vkgrl_newton.prepare import vision

@@ -40,7 +40,11 @@ def trial_command(trial: dict, run_py: str, run_args: list[str], resume: bool) -
 
 def _die_with_parent() -> None:
     """In the child: SIGTERM when the Ray worker that started it dies (Linux), so a retried trial
-    never runs beside an orphan of its previous attempt."""
+    never runs beside an orphan of its previous attempt. And SIGINT back to its default: a sweep started
+    in the background (`nohup python train/sweep.py ... &`) passes SIGINT ignored down to its workers, and
+    run.py would then ignore the SIGINT with which a cancelled trial is stopped (Python installs its
+    KeyboardInterrupt handler only where SIGINT is not ignored), leaving the worker waiting on it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux (no libc.so.6 / prctl): the child outlives a
