@@ -21,11 +21,13 @@ def cpu_model() -> str:
     import platform
 
     try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+        with open("/proc/cpuinfo") as f:
+            lines = f.readlines()
     except OSError:  # no /proc/cpuinfo (not Linux): platform's name below
-        pass
+        lines = []
+    for line in lines:
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
     return platform.processor() or platform.machine() or "unknown"
 
 

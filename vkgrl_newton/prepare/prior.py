@@ -94,7 +94,10 @@ def prior_record(tables: KMPTables, demos_path, reach_floor_mm: float = 0.0, rea
     return record
 
 
-def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log, progress=True) -> None:
+def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, log, progress=True,
+                     prepare_env=None) -> None:
+    """The scripted demonstrations recorded into `path`; prepare_env(env), where given, is called on the
+    recording env first (tools.ceiling's sensitivity runs perturb its gains there)."""
     from ..envs.assembly_env import AssemblyEnv, EnvConfig
     from ..envs.demonstrations import record_demonstrations
     from ..sim.scene import SimConfig
@@ -102,6 +105,8 @@ def _record_scripted(task, path, num_demos, num_envs, device, seed, geometry, lo
     log(f"recording {num_demos} scripted {task} demonstrations into {path} (once; cached)")
     env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_envs, device=device,
                                 seed=seed, sim=SimConfig(geometry=geometry)))
+    if prepare_env is not None:
+        prepare_env(env)
     demo_set, episodes = record_demonstrations(env, num_demos, seed=seed,
                                                max_episodes=max(4, 3 * num_demos // num_envs + 2), progress=progress)
     if demo_set is None or len(demo_set.demo_lengths) < num_demos:

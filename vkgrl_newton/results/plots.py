@@ -125,10 +125,8 @@ def reference_levels(run_dirs: list[Path], configs: list[dict]) -> list[tuple[st
         seed, worlds = evals.pop()
         if isinstance(seed, int) and isinstance(worlds, int):
             for c in ceiling_levels(task, env, dim, seed, worlds):
-                levels.append((f"{c.controller} (privileged)" if c.controller != "search" else "blind search",
-                               c.rate, f"ceiling:{c.controller}"))
-                label, rate, kind = levels[-1]
-                levels[-1] = (f"{label} {c.successes}/{c.episodes}", rate, kind)
+                name = "blind search" if c.controller == "search" else f"{c.controller} (privileged)"
+                levels.append((f"{name} {c.successes}/{c.episodes}", c.rate, f"ceiling:{c.controller}"))
     return levels
 
 

@@ -121,7 +121,8 @@ class RunConfig:
         return self.run_dir / "checkpoints" / "last.pt"
 
     @property
-    def floors(self) -> dict:
+    def prior_table_changes(self) -> dict:
+        """What the run changes of its prior's tables (mm): the reach floors and the seat press (prior_record)."""
         return {"reach_floor_mm": self.reach_floor_mm, "reach_floor_z_mm": self.reach_floor_z_mm,
                 "seat_press_mm": self.seat_press_mm}
 
@@ -330,7 +331,7 @@ def search_without_z_reach(ns, sac_config, preset: str) -> str | None:
     return None
 
 
-def reach_floor_flags(ns) -> tuple:
+def prior_table_flags(ns) -> tuple:
     """(prior-record key, flag, value given or None) of what a run changes of its prior's tables: the two
     reach floors and the seat press (mm each)."""
     return (("reach_floor_mm", "--kgrl-reach-floor", ns.kgrl_reach_floor),
@@ -365,7 +366,8 @@ def check_scalars(ns) -> None:
         raise ConfigError(f"--num-demos {ns.num_demos}: must be >= 2")
     if why := seed_error("--seed", ns.seed):
         raise ConfigError(why)
-    for flag, value, top in (("--kgrl-reach-floor", ns.kgrl_reach_floor, 50), ("--kgrl-reach-floor-z", ns.kgrl_reach_floor_z, 50),
+    for flag, value, top in (("--kgrl-reach-floor", ns.kgrl_reach_floor, 50),
+                             ("--kgrl-reach-floor-z", ns.kgrl_reach_floor_z, 50),
                              ("--kgrl-seat-press", ns.kgrl_seat_press, SEAT_PRESS_MAX_MM)):
         if value is not None and METHODS[ns.method].uses_kmp and not (math.isfinite(value) and 0 <= value <= top):
             raise ConfigError(f"{flag} must be a number of mm in [0, {top:g}], got {value}")

@@ -19,7 +19,7 @@ from ..agents.sac_config import SACConfig
 from ..cache import check_run_files
 from ..tasks import geometry_error
 from .config import (RUN_FILES, ConfigError, RunConfig, check_scalars, default_run_dir, explicit_args, kgrl_recipe,
-                     parse_sac_overrides, reach_floor_flags, sac_config_for, search_without_z_reach, unavailable)
+                     parse_sac_overrides, prior_table_flags, sac_config_for, search_without_z_reach, unavailable)
 from .methods import METHODS, names
 from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, PPO_RUNNER_ONLY, RUN_DEFAULTS
 
@@ -202,7 +202,7 @@ def _check_options(ns) -> None:
             raise ConfigError(f"--kgrl-time-action {ns.kgrl_time_action}: control steps per unit action, in [0, 10]")
     if ns.kmp_reference is not None and not m.uses_kmp:
         raise ConfigError(f"--kmp-reference is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
-    for _, flag, value in reach_floor_flags(ns):
+    for _, flag, value in prior_table_flags(ns):
         if value is not None and not m.uses_kmp:
             raise ConfigError(f"{flag} is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
     if ns.vae is not None and not m.vision:
@@ -312,14 +312,15 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         raise ConfigError(f"--run-dir {run_dir} already holds a run; pass --resume to continue it or choose another "
                           "directory")
     recipe = kgrl_recipe(ns, ns.preset)
-    floors = {key: float(given if given is not None else recipe.get(key, 0.0)) for key, _, given in reach_floor_flags(ns)}
+    changes = {key: float(given if given is not None else recipe.get(key, 0.0))
+              for key, _, given in prior_table_flags(ns)}
     reference, kmp_params = ns.kmp_reference or "gmr", None
     if payload is not None and "prior" in payload["meta"]:  # the KMP parameters it was fitted with
         prior = payload["meta"]["prior"]
         kmp_params = {k: prior[k] for k in ("lam", "beta", "l")}
         reference = prior.get("reference", "gmr")
-        for key, _, _ in reach_floor_flags(ns):  # (a different one given is refused against the checkpoint)
-            floors[key] = prior.get(key, 0.0)
+        for key, _, _ in prior_table_flags(ns):  # (a different one given is refused against the checkpoint)
+            changes[key] = prior.get(key, 0.0)
     return RunConfig(
         task=ns.task, method=ns.method, env=ns.env, action_dim=ns.action_dim, seed=ns.seed, num_envs=ns.num_envs,
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
@@ -331,7 +332,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         checkpoint_every=ns.checkpoint_every, eval_episodes=ns.eval_episodes, eval_seed=ns.eval_seed,
         device=ns.device, run_dir=run_dir, resume=bool(ns.resume), cache_dir=ns.cache_dir,
         progress=not ns.no_progress, overlap=ns.overlap, eager_physics=bool(ns.eager_physics),
-        verbose=bool(ns.verbose), **floors)
+        verbose=bool(ns.verbose), **changes)
 
 
 def _with_cpu_matmul(ns, config: RunConfig, payload: dict | None) -> RunConfig:
@@ -399,7 +400,7 @@ def _check_against_checkpoint(ns, config: RunConfig, payload: dict) -> None:
     except ValueError as e:
         raise ConfigError(f"--resume: {e}") from None
     if config.method_row.uses_kmp and "prior" in payload["meta"]:  # the null space it learned in, before any build
-        for key, flag, given in reach_floor_flags(ns):
+        for key, flag, given in prior_table_flags(ns):
             was = payload["meta"]["prior"].get(key, 0.0)
             if given is not None and given != was:
                 raise ConfigError(f"--resume: the run's {flag} was {was:g} mm, not {given:g}; resume without it")

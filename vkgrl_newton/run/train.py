@@ -118,7 +118,7 @@ def run_meta_with_files(cfg: RunConfig, built: Built) -> dict:
     if built.action_path is not None:
         from ..prepare.prior import prior_record
 
-        meta["prior"] = prior_record(built.action_path.tables, built.demos_path, **cfg.floors)
+        meta["prior"] = prior_record(built.action_path.tables, built.demos_path, **cfg.prior_table_changes)
     if built.encoder is not None:
         from ..cache import file_sha256
 

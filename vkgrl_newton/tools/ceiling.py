@@ -276,8 +276,6 @@ def _hook(env, recorder: _Recorder) -> None:
 
 def run_controller(env, policy, rounds: int, eval_seed: int, task: str, perturb_kp_ulp: int = 0) -> tuple[list, float]:
     """The controller on `rounds` x worlds episodes of the eval seed; (records, wall seconds)."""
-    import torch
-
     from ..results.paired import seed_evaluation
 
     rec = _Recorder(env, task)
@@ -288,8 +286,8 @@ def run_controller(env, policy, rounds: int, eval_seed: int, task: str, perturb_
     try:
         for k in range(rounds):
             policy.reset(env)
-            for _ in range(perturb_kp_ulp):  # K float32 ulps up, every gain (Kd follows from Kp at reset only)
-                env.kp.copy_(torch.nextafter(env.kp, torch.full_like(env.kp, math.inf)))
+            if perturb_kp_ulp:  # every gain (Kd follows from Kp at reset only)
+                env.kp.copy_(ulps_up(env.kp, perturb_kp_ulp))
             rec.start()
             while True:
                 obs, _, _, extras = policy.step(env, obs)
@@ -311,35 +309,36 @@ def summary(records: list[dict]) -> dict:
             "categories": category_counts(records)}
 
 
-def record_perturbed_demos(task: str, cache_dir: str, kp_ulp: int, seed: int = 0, num_demos: int = 16,
-                           num_envs: int = 16) -> Path:
-    """The prior's demonstrations recorded as prepare.prior does (same seed, worlds and demonstrator), every OSC
-    gain `kp_ulp` float32 ulps up at each world's reset, saved where the prior's cache looks for them."""
+def ulps_up(t, k: int):
+    """`t` moved `k` float32 ulps up, element by element (nextafter toward +inf, k times)."""
     import torch
 
-    from ..envs.assembly_env import AssemblyEnv, EnvConfig
-    from ..envs.demonstrations import record_demonstrations
-    from ..prepare.prior import demos_path_for
+    for _ in range(k):
+        t = torch.nextafter(t, torch.full_like(t, math.inf))
+    return t
+
+
+def record_perturbed_demos(task: str, cache_dir: str, kp_ulp: int, seed: int = 0, num_demos: int = 16,
+                           num_envs: int = 16) -> Path:
+    """The prior's demonstrations recorded by prepare.prior's own recorder (same seed, worlds and demonstrator),
+    every OSC gain `kp_ulp` float32 ulps up at each world's reset, saved where the prior's cache looks for them."""
+    from ..prepare.prior import _record_scripted, demos_path_for
 
     path = demos_path_for(cache_dir, task, num_demos, seed)
     if path.exists():
         raise FileExistsError(f"{path} exists: --demos-kp-ulp records anew, give it an empty --cache-dir")
-    env = AssemblyEnv(EnvConfig(task=task, family="factory", action_dim=6, num_envs=num_envs, device="cpu",
-                                seed=seed))
-    orig = env._set_family_gains
 
-    def set_gains(mask):
-        orig(mask)
-        for _ in range(kp_ulp):
-            env.kp[mask] = torch.nextafter(env.kp[mask], torch.full_like(env.kp[mask], math.inf))
+    def perturb_gains(env):
+        orig = env._set_family_gains
 
-    env._set_family_gains = set_gains  # this tool's env only
-    demo_set, episodes = record_demonstrations(env, num_demos, seed=seed,
-                                               max_episodes=max(4, 3 * num_demos // num_envs + 2), progress=False)
-    if demo_set is None or len(demo_set.demo_lengths) < num_demos:
-        raise RuntimeError(f"the perturbed demonstrator seated too few parts in {episodes} rounds")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    demo_set.save(path)
+        def set_gains(mask):
+            orig(mask)
+            env.kp[mask] = ulps_up(env.kp[mask], kp_ulp)
+
+        env._set_family_gains = set_gains  # the recording env only
+
+    _record_scripted(task, path, num_demos, num_envs, "cpu", seed, "primitives", print, progress=False,
+                     prepare_env=perturb_gains)
     return path
 
 
@@ -447,7 +446,8 @@ def main(argv=None) -> int:
     cpu = cpu_model()
     out = {"task": args.task, "env": "factory", "action_dim": 4, "num_envs": args.num_envs,
            "episodes_per_world": args.episodes_per_world, "eval_seed": args.eval_seed, "seed": args.seed,
-           "perturb_kp_ulp": args.perturb_kp_ulp, "demos_kp_ulp": args.demos_kp_ulp, "demos": str(demos), "cpu": cpu, "command": "python -m "
+           "perturb_kp_ulp": args.perturb_kp_ulp, "demos_kp_ulp": args.demos_kp_ulp, "demos": str(demos), "cpu": cpu,
+           "command": "python -m "
            "vkgrl_newton.tools.ceiling " + " ".join(sys.argv[1:] if argv is None else argv),
            "thresholds_mm": {"catch": 1e3 * CEILING_GEOMETRY[args.task].catch,
                              "rest_height": 1e3 * CEILING_GEOMETRY[args.task].rest_height,
