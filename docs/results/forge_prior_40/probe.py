@@ -33,6 +33,22 @@ def build(dynamics: bool, num_envs: int, cache_dir: str):
     return env, tables, demos
 
 
+def wider_oracle(env, tables, floor_mm, gain):
+    """tools.ceiling's oracle with other x, y reach floors and lateral gain (None: the ceiling's)."""
+    import math
+    from dataclasses import replace
+
+    from vkgrl_newton.envs.evaluation import ORACLE_GAIN, KMPOraclePolicy
+    from vkgrl_newton.tools.ceiling import CEILING_GEOMETRY, ORACLE_PUSH_MM, oracle_params
+
+    g = CEILING_GEOMETRY["PegInsert"]
+    p = replace(oracle_params("PegInsert"), settle_mm=0.3)
+    if floor_mm is not None:
+        p = replace(p, reach_floor_mm=floor_mm)
+    return KMPOraclePolicy.with_floors(tables, env, p, gain=ORACLE_GAIN if gain is None else gain,
+                                       push_mm=ORACLE_PUSH_MM, inside_mm=1e3 * (g.rest_height - g.entry_depth))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--json", type=Path, required=True)
@@ -41,6 +57,8 @@ def main() -> int:
     ap.add_argument("--controllers", nargs="+", default=["prior"])
     ap.add_argument("--dynamics", nargs="+", default=["on", "off"], choices=["on", "off"])
     ap.add_argument("--cache-dir", default="runs/cache")
+    ap.add_argument("--oracle-floor-mm", type=float, default=None, help="the oracle's x, y reach floors (default 4)")
+    ap.add_argument("--oracle-gain", type=float, default=None, help="the oracle's lateral gain (default 1.5)")
     args = ap.parse_args()
     if args.json.exists():
         ap.error(f"--json {args.json}: exists (a new file only)")
@@ -61,6 +79,9 @@ def main() -> int:
             key = f"{name}_dynamics_{dyn}"
             print(key, flush=True)
             policy = make_controller(name, env, tables, "PegInsert")
+            if name == "oracle" and (args.oracle_floor_mm is not None or args.oracle_gain is not None):
+                policy = wider_oracle(env, tables, args.oracle_floor_mm, args.oracle_gain)
+                key = f"oracle_floor{args.oracle_floor_mm}_gain{args.oracle_gain}_dynamics_{dyn}"
             records, wall = run_controller(env, policy, args.episodes_per_world, 10_000, "PegInsert")
             out["runs"][key] = {**summary(records), "wall_s": round(wall, 1), "records": records}
             s = out["runs"][key]
