@@ -35,7 +35,6 @@ def build(dynamics: bool, num_envs: int, cache_dir: str):
 
 def wider_oracle(env, tables, floor_mm, gain):
     """tools.ceiling's oracle with other x, y reach floors and lateral gain (None: the ceiling's)."""
-    import math
     from dataclasses import replace
 
     from vkgrl_newton.envs.evaluation import ORACLE_GAIN, KMPOraclePolicy
