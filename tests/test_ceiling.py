@@ -179,6 +179,50 @@ def test_oracle_policy_steers_by_the_true_lateral_error(wp_cpu):
     assert policy.found.tolist() == [False, True] and checked > 40
 
 
+def test_noisy_oracle_steers_by_the_lateral_error_plus_a_bias_held_per_episode(wp_cpu):
+    """lateral_noise_mm sigma: x, y of eta = the TCP's minus 1.5 x (true lateral error + b), b drawn at each episode's
+    start, held through it, redrawn at the next; b ~ N(0, sigma^2) per axis (sample moments over 4 096 worlds);
+    sigma 0 steers as the plain oracle."""
+    from vkgrl_newton.envs.evaluation import KMPOraclePolicy
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import fit_prior
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
+    with pytest.raises(ValueError, match="lateral_noise_mm"):
+        KMPOraclePolicy.with_floors(tables, fake_env(2), lateral_noise_mm=-1.0)
+    E, sigma = 4096, 0.8
+    env = fake_env(E)
+    noisy = KMPOraclePolicy.with_floors(tables, env, lateral_noise_mm=sigma, noise_seed=3)
+    plain = KMPOraclePolicy.with_floors(tables, env)
+    mean = noisy.path.tables.mean.numpy()
+    env.held_p[:, :2] = env.target_base_w[:, :2] + 1e-3 * (torch.rand(E, 2) - 0.5)
+    high = mean[-1, 2] + 20e-3
+    biases = []
+    for episode in range(2):
+        for n in (0, 1, 40, 41):  # blocked from step 30 (n_min): want is the steered x, y from 40 on
+            env.episode_length_buf.fill_(n)
+            rel = np.repeat(mean[[n], :3], E, 0)
+            rel[:, 2] = high if n >= 30 else rel[:, 2]
+            obs = torch.zeros(E, 8)
+            obs[:, 1:4] = torch.from_numpy(rel).float()
+            noisy.actions(env, {"policy": obs})
+            plain.actions(env, {"policy": obs})
+            b = noisy.bias.numpy().copy()
+            if n == 0:
+                biases.append(b)
+            np.testing.assert_array_equal(b, biases[-1])  # held through the episode
+            lat = (env.held_p - env.target_base_w)[:, :2].double().numpy()
+            if n >= 40:
+                r32 = obs[:, 1:3].double().numpy()
+                np.testing.assert_allclose(noisy._last[0][:, :2].numpy(), r32 - 1.5 * (lat + b), atol=1e-12)
+                np.testing.assert_allclose(plain._last[0][:, :2].numpy(), r32 - 1.5 * lat, atol=1e-12)
+    assert not np.any(biases[0] == biases[1])  # redrawn at the next start
+    for b in biases:  # sample sd within 4.5 of its own standard errors (sigma / sqrt(2 E) ~ 1.1 %); mean likewise
+        np.testing.assert_allclose(b.std(0), 1e-3 * sigma, rtol=4.5 / math.sqrt(2 * E))
+        assert np.all(np.abs(b.mean(0)) < 4.5 * 1e-3 * sigma / math.sqrt(E))
+    assert np.all(plain.bias.numpy() == 0)
+
+
 def test_oracle_takes_over_a_part_that_went_in_unblocked(wp_cpu):
     """inside_mm: a world whose part is found inside (true height above seated under inside_mm) without having been
     blocked is settled at once: x, y held at the TCP's less 1.5 e, z the TCP's less the true height less push_mm."""

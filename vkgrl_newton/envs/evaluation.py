@@ -257,15 +257,27 @@ class KMPOraclePolicy(KMPSearchPolicy):
     origin from its target (env.held_pose() - env.target_base_w, x and y: no policy observes it). Once
     blocked, the wanted x, y of eta is the TCP's own minus `gain` e, every step (issue 28, session 15: 0.820
     on PegInsert Factory 4D, eval seed 10000). The yardstick of what the floored null space can do when
-    the information is there (tools/ceiling.py)."""
+    the information is there (tools/ceiling.py). With `lateral_noise_mm` sigma, e is known only to within a bias
+    drawn N(0, sigma^2) per axis per episode: the yardstick of an estimate of the hole that good."""
 
     def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
-                 push_mm: float | None = None, inside_mm: float | None = None, mesh_pitch: float | None = None):
+                 push_mm: float | None = None, inside_mm: float | None = None, mesh_pitch: float | None = None,
+                 lateral_noise_mm: float = 0.0, noise_seed: int = 0):
         super().__init__(action_path, params or ORACLE_PARAMS)
+        if not lateral_noise_mm >= 0:
+            raise ValueError(f"KMPOraclePolicy: lateral_noise_mm={lateral_noise_mm!r}; allowed: >= 0")
         self.gain = float(gain)
         self.push_mm = push_mm
         self.inside_mm = inside_mm
         self.mesh_pitch = mesh_pitch  # rad: steer the yaw too, to the nearest yaw where the held gear meshes
+        # The information ceiling: the lateral error it steers by is off by a bias drawn N(0, sigma^2) per axis at
+        # each episode's start and held for the episode (as an estimate of the hole with that error would be: the
+        # 1 mm observation noise, a camera latent's). Its own generator: the episodes stay the paired ones, and one
+        # seed gives the same standard draws at every sigma.
+        self.lateral_noise_mm = float(lateral_noise_mm)
+        dev = action_path.env.tdev
+        self.bias = torch.zeros(action_path.env.num_envs, 2, dtype=torch.float64, device=dev)  # (E, 2) m, world x, y
+        self._noise = torch.Generator(device=dev).manual_seed(int(noise_seed))
         ax = [0, 1, 2, 5]
         self.mean4 = self.mean[:, ax]
         self.gain4 = self.path.tables.gain.to(self.mean.device, torch.float64)[:, ax][:, :, ax]
@@ -274,12 +286,19 @@ class KMPOraclePolicy(KMPSearchPolicy):
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
                     push_mm: float | None = None, inside_mm: float | None = None,
-                    mesh_pitch: float | None = None) -> "KMPOraclePolicy":
+                    mesh_pitch: float | None = None, lateral_noise_mm: float = 0.0,
+                    noise_seed: int = 0) -> "KMPOraclePolicy":
         from .kgrl_action import KGRLActionPath
 
         p = params or ORACLE_PARAMS
         return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
-                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm, inside_mm, mesh_pitch)
+                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm, inside_mm, mesh_pitch,
+                   lateral_noise_mm, noise_seed)
+
+    def lateral(self, env) -> torch.Tensor:
+        """(E, 2) float64 m, world x, y: the held part's origin minus its target (privileged), plus the episode's
+        bias (lateral_noise_mm; zero without)."""
+        return (env.held_pose()[0] - env.target_base_w)[:, :2].to(torch.float64) + self.bias
 
     def mesh_yaw(self, env) -> torch.Tensor:
         """(E,) float64 TCP yaw nearest the current one at which the held gear's teeth face the fixed gears' gaps
@@ -296,6 +315,10 @@ class KMPOraclePolicy(KMPSearchPolicy):
         """inside_mm (privileged): a part that went in without being blocked (its true height above seated below
         inside_mm) is taken over as if it had dropped while searching: x, y held where they are (less gain e),
         z `_settled_z` (with push_mm: pressed to the seat; the prior's seat alone holds some parts above it)."""
+        if self.lateral_noise_mm > 0:  # (drawn every step, kept where an episode starts: no host read)
+            draw = torch.randn(self.bias.shape, generator=self._noise, dtype=torch.float64, device=self.bias.device)
+            start = (env.episode_length_buf == 0).unsqueeze(-1)
+            self.bias = torch.where(start, 1e-3 * self.lateral_noise_mm * draw, self.bias)
         if self.inside_mm is not None:
             n = env.episode_length_buf.long()
             rel = policy_observation(obs)[:, 1:4].to(torch.float64)
@@ -303,7 +326,7 @@ class KMPOraclePolicy(KMPSearchPolicy):
             new = (n > 0) & (self.since < 0) & (d[:, 2] < 1e-3 * self.inside_mm)
             self.since = torch.where(new, n, self.since)
             self.found |= new
-            self.held = torch.where(new.unsqueeze(-1), rel[:, :2] - self.gain * d[:, :2], self.held)
+            self.held = torch.where(new.unsqueeze(-1), rel[:, :2] - self.gain * self.lateral(env), self.held)
         a = super().actions(env, obs)
         if self.mesh_pitch is None:
             return a
@@ -321,8 +344,7 @@ class KMPOraclePolicy(KMPSearchPolicy):
         return torch.where(on.unsqueeze(-1), a4, a)
 
     def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
-        lateral = (env.held_pose()[0] - env.target_base_w)[:, :2].to(torch.float64)  # privileged
-        return rel[:, :2] - self.gain * lateral
+        return rel[:, :2] - self.gain * self.lateral(env)  # privileged
 
     def _settled_z(self, env, rel: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         """push_mm None: the prior's z (issue 28). Else privileged too: the TCP's z minus the held part's true

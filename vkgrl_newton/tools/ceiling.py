@@ -16,6 +16,9 @@ every run's final evaluation):
 - `search`: the blind spiral search in the floored null space (--policy kmp_search).
 `--perturb-kp-ulp K` moves every OSC gain K float32 ulps up at every episode start (nothing else changes):
 how many outcomes a last-bit difference flips (the Intel / AMD question of issue 40).
+`--oracle-lateral-noise-mm SIGMA`: the oracle knows the lateral error only to within a per-episode N(0, SIGMA^2) bias
+per axis (the information ceiling: SIGMA 1 is Factory's observation noise on the target, a camera latent's error
+near the hole is ~0.2-0.6 mm).
 `--demos-kp-ulp K` records the prior's demonstrations anew with the same K-ulp move (into --cache-dir, which must
 not hold them yet), fits the prior to them and evaluates it: what a last-bit difference in the *recording*, which
 each machine does for itself on an empty cache, does to the prior.
@@ -36,7 +39,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from .._io import output_path_error
-from ..cli_types import EVAL_SEED_BITS, nonnegative_int, positive_int, seed_error
+from ..cli_types import EVAL_SEED_BITS, nonnegative_float, nonnegative_int, positive_int, seed_error
 from ..assets_usd.dimensions import (BOLT_CORE_RADIUS, BOLT_TIP_HEIGHT, GEAR_BASE_HEIGHT, GEAR_BORE_APOTHEM, GEAR_HEIGHT,
                                      GEAR_SHAFT_RADIUS, GEAR_TEETH, GEAR_TOOTH_CLEARANCE, HOLE_CHAMFER, HOLE_DEPTH, HOLE_DIAMETER,
                                      NUT_BORE_APOTHEM, PEG_DIAMETER, THREAD_BOLT_TOP, THREAD_CAPSULE_RADIUS,
@@ -359,7 +362,7 @@ def build(task: str, num_envs: int, cache_dir: str, seed: int = 0):
     return env, tables, demos
 
 
-def make_controller(name: str, env, tables, task: str, seed: int = 0):
+def make_controller(name: str, env, tables, task: str, seed: int = 0, oracle_lateral_noise_mm: float = 0.0):
     from ..envs.evaluation import KMPOraclePolicy, KMPPriorPolicy, KMPSearchPolicy, ScriptedPolicy
     from ..envs.kgrl_action import KGRLActionPath
 
@@ -377,7 +380,8 @@ def make_controller(name: str, env, tables, task: str, seed: int = 0):
         pitch = 2 * math.pi / GEAR_TEETH["medium"] if task == "GearMesh" else None  # the teeth decide the yaw
         return KMPOraclePolicy.with_floors(tables, env, replace(oracle_params(task), settle_mm=0.3),
                                            push_mm=ORACLE_PUSH_MM, inside_mm=1e3 * (g.rest_height - g.entry_depth),
-                                           mesh_pitch=pitch)
+                                           mesh_pitch=pitch, lateral_noise_mm=oracle_lateral_noise_mm,
+                                           noise_seed=seed)
     if name == "prior_push":
         return KMPPriorPolicy(KGRLActionPath(pushed_prior(tables, PRIOR_PUSH_MM * 1e-3), env))
     raise ValueError(f"controller must be one of {CONTROLLERS}, got {name!r}")
@@ -420,6 +424,9 @@ def main(argv=None) -> int:
     ap.add_argument("--demos-kp-ulp", type=nonnegative_int, default=0,
                     help="record the prior's demonstrations with the OSC gains this many ulps up (into an empty "
                          "--cache-dir) and evaluate the prior fitted to them")
+    ap.add_argument("--oracle-lateral-noise-mm", type=nonnegative_float, default=0.0, metavar="SIGMA",
+                    help="the oracle steers by the lateral error plus a bias drawn N(0, SIGMA^2) mm per axis at each "
+                         "episode's start (seeded by --seed): what an estimate of the hole that good allows")
     ap.add_argument("--cache-dir", default="runs/cache")
     ap.add_argument("--json", type=Path, required=True,
                     help="output, a new file (never overwritten; rewritten after each controller of this run)")
@@ -446,7 +453,8 @@ def main(argv=None) -> int:
     cpu = cpu_model()
     out = {"task": args.task, "env": "factory", "action_dim": 4, "num_envs": args.num_envs,
            "episodes_per_world": args.episodes_per_world, "eval_seed": args.eval_seed, "seed": args.seed,
-           "perturb_kp_ulp": args.perturb_kp_ulp, "demos_kp_ulp": args.demos_kp_ulp, "demos": str(demos), "cpu": cpu,
+           "perturb_kp_ulp": args.perturb_kp_ulp, "demos_kp_ulp": args.demos_kp_ulp,
+           "oracle_lateral_noise_mm": args.oracle_lateral_noise_mm, "demos": str(demos), "cpu": cpu,
            "command": "python -m "
            "vkgrl_newton.tools.ceiling " + " ".join(sys.argv[1:] if argv is None else argv),
            "thresholds_mm": {"catch": 1e3 * CEILING_GEOMETRY[args.task].catch,
@@ -456,7 +464,7 @@ def main(argv=None) -> int:
            "controllers": {}}
     for name in args.controllers:
         print(f"{args.task} {name}", flush=True)
-        policy = make_controller(name, env, tables, args.task, args.seed)
+        policy = make_controller(name, env, tables, args.task, args.seed, args.oracle_lateral_noise_mm)
         records, wall = run_controller(env, policy, args.episodes_per_world, args.eval_seed, args.task,
                                        args.perturb_kp_ulp)
         out["controllers"][name] = {**summary(records), "wall_s": round(wall, 1), "records": records}
