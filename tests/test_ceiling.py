@@ -223,6 +223,53 @@ def test_noisy_oracle_steers_by_the_lateral_error_plus_a_bias_held_per_episode(w
     assert np.all(plain.bias.numpy() == 0)
 
 
+def test_centre_policy_is_blind_and_steers_the_tcp_over_the_observed_target(wp_cpu):
+    """KMPCentrePolicy reads the observation only (the privileged poses raise): once blocked, x, y of eta = the TCP's
+    minus 1.5 x its own x, y relative to the observed target (float64 reference; the search's blocked test); after a
+    1.5 mm drop (its 1 mm settle) x, y frozen and z push_mm below the prior's seat."""
+    from vkgrl_newton.envs.evaluation import KMPCentrePolicy
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import fit_prior
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
+    env = fake_env(2)
+
+    def privileged():
+        raise AssertionError("a blind policy read a privileged pose")
+
+    env.held_pose = privileged
+    env.target_base_w = None
+    policy = KMPCentrePolicy.with_floors(tables, env, push_mm=3.0)
+    p = policy.params
+    mean, gain = policy.path.tables.mean.numpy(), policy.path.tables.gain.numpy()
+    w = np.full(3, env.task.w_pos)
+    high = mean[-1, 2] + 20e-3
+    off = np.array([[1.1e-3, -0.6e-3], [-0.3e-3, 0.8e-3]])  # the TCP off the observed target, x, y
+    drop_at, checked, held = 80, 0, None
+    for n in range(120):
+        env.episode_length_buf.fill_(n)
+        rel = np.c_[off, np.full(2, high if n >= 30 else mean[n, 2])]
+        if n >= drop_at:
+            rel[1, 2] = high - 1.5e-3
+        obs = torch.zeros(2, 8)
+        obs[:, 1:4] = torch.from_numpy(rel).float()
+        a = policy.actions(env, {"policy": obs}).double().numpy()
+        if n < p.n_min:
+            assert np.all(a == 0), n
+            continue
+        r32 = obs[:, 1:4].double().numpy()
+        want = np.c_[r32[:, :2] - 1.5 * r32[:, :2], r32[:, 2] - 1e-3]
+        if n >= drop_at:
+            held = want[1, :2].copy() if held is None else held
+            want[1] = np.r_[held, mean[n, 2] - 3e-3]
+        eta = mean[n, :3] + np.einsum("ij,ej->ei", gain[n][:3, :3], a[:, :3] * w)
+        for e in range(2):
+            if np.all(np.abs(a[e, :3]) < 1):  # the float32 solve's error, as in the oracle's test
+                np.testing.assert_allclose(eta[e], want[e], atol=1e-6)
+                checked += 1
+    assert policy.found.tolist() == [False, True] and checked > 40
+
+
 def test_oracle_takes_over_a_part_that_went_in_unblocked(wp_cpu):
     """inside_mm: a world whose part is found inside (true height above seated under inside_mm) without having been
     blocked is settled at once: x, y held at the TCP's less 1.5 e, z the TCP's less the true height less push_mm."""

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-__all__ = ["Policy", "ScriptedPolicy", "ScriptedDeltaPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "KMPSearchPolicy",
+__all__ = ["Policy", "ScriptedPolicy", "ScriptedDeltaPolicy", "RandomPolicy", "ZeroPolicy", "KMPPriorPolicy", "KMPSearchPolicy", "KMPCentrePolicy",
            "KMPOraclePolicy", "SearchParams", "spiral_offset", "AgentPolicy", "evaluate", "policy_observation",
            "kgrl_observation"]
 
@@ -354,6 +354,33 @@ class KMPOraclePolicy(KMPSearchPolicy):
             return m[:, 2:]
         height = (env.held_pose()[0] - env.target_base_w)[:, 2:].to(torch.float64)
         return rel[:, 2:] - height - 1e-3 * self.push_mm
+
+
+class KMPCentrePolicy(KMPSearchPolicy):
+    """Blind, as KMPSearchPolicy (it reads only the observation): once blocked, the spiral is replaced by steering
+    the TCP over the observed target frame, the oracle's rule with the TCP's own x, y relative to that frame (the
+    observation) in place of the privileged lateral error; once the part drops, z is commanded `push_mm` below the
+    prior's seat. What a proprioceptive policy can do with what it observes: its lateral error is then the target's
+    1 mm observation noise and the part's small offset in the hand (tools/ceiling.py `centre`)."""
+
+    def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN, push_mm: float = 0.0):
+        super().__init__(action_path, params or ORACLE_PARAMS)
+        self.gain, self.push_mm = float(gain), float(push_mm)
+
+    @classmethod
+    def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
+                    push_mm: float = 0.0) -> "KMPCentrePolicy":
+        from .kgrl_action import KGRLActionPath
+
+        p = params or ORACLE_PARAMS
+        return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
+                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm)
+
+    def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        return rel[:, :2] - self.gain * rel[:, :2]  # the TCP toward x, y = 0 of the observed target frame
+
+    def _settled_z(self, env, rel: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        return m[:, 2:] - 1e-3 * self.push_mm
 
 
 class AgentPolicy(Policy):
