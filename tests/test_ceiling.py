@@ -268,6 +268,20 @@ def test_centre_policy_is_blind_and_steers_the_tcp_over_the_observed_target(wp_c
                 np.testing.assert_allclose(eta[e], want[e], atol=1e-6)
                 checked += 1
     assert policy.found.tolist() == [False, True] and checked > 40
+    # spiral: the search's spiral about the observed target, led by track x the lag (float64, from the closed form)
+    spiral = KMPCentrePolicy.with_floors(tables, env, push_mm=3.0, spiral=True)
+    for n in range(p.n_min, p.n_min + 30):
+        env.episode_length_buf.fill_(n)
+        obs = torch.zeros(2, 8)
+        obs[:, 1:4] = torch.from_numpy(np.c_[off, np.full(2, high)]).float()
+        spiral.actions(env, {"policy": obs})
+        k = n - spiral.since.numpy()
+        b = p.pitch_mm * 1e-3 / (2 * math.pi)
+        th = np.sqrt(2 * p.speed_mm * 1e-3 * k / b)
+        s = b * th[:, None] * np.c_[np.cos(th), np.sin(th)]
+        np.testing.assert_allclose(spiral._last[0][:, :2].numpy(), s + p.track * (s - obs[:, 1:3].double().numpy()),
+                                   atol=1e-12)
+    assert spiral.since.tolist() == [p.n_min, p.n_min]
 
 
 def test_oracle_takes_over_a_part_that_went_in_unblocked(wp_cpu):

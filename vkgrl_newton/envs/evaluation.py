@@ -361,22 +361,29 @@ class KMPCentrePolicy(KMPSearchPolicy):
     the TCP over the observed target frame, the oracle's rule with the TCP's own x, y relative to that frame (the
     observation) in place of the privileged lateral error; once the part drops, z is commanded `push_mm` below the
     prior's seat. What a proprioceptive policy can do with what it observes: its lateral error is then the target's
-    1 mm observation noise and the part's small offset in the hand (tools/ceiling.py `centre`)."""
+    1 mm observation noise and the part's small offset in the hand (tools/ceiling.py `centre`). With `spiral`, the
+    search's spiral instead, centred on the observed target rather than where the TCP was blocked
+    (`centre_search`)."""
 
-    def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN, push_mm: float = 0.0):
+    def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN, push_mm: float = 0.0,
+                 spiral: bool = False):
         super().__init__(action_path, params or ORACLE_PARAMS)
-        self.gain, self.push_mm = float(gain), float(push_mm)
+        self.gain, self.push_mm, self.spiral = float(gain), float(push_mm), bool(spiral)
 
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
-                    push_mm: float = 0.0) -> "KMPCentrePolicy":
+                    push_mm: float = 0.0, spiral: bool = False) -> "KMPCentrePolicy":
         from .kgrl_action import KGRLActionPath
 
         p = params or ORACLE_PARAMS
         return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
-                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm)
+                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm, spiral)
 
     def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        if self.spiral:  # the search's spiral and lead, about x, y = 0 of the observed target frame
+            p = self.params
+            wanted = spiral_offset((n - self.since).to(torch.float64), p.pitch_mm * 1e-3, p.speed_mm * 1e-3)
+            return wanted + p.track * (wanted - rel[:, :2])
         return rel[:, :2] - self.gain * rel[:, :2]  # the TCP toward x, y = 0 of the observed target frame
 
     def _settled_z(self, env, rel: torch.Tensor, m: torch.Tensor) -> torch.Tensor:

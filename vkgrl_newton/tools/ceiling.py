@@ -15,7 +15,8 @@ every run's final evaluation):
 - `prior_push`: the prior with its seat lowered PRIOR_PUSH_MM (blind; what a demonstration of the push would give);
 - `search`: the blind spiral search in the floored null space (--policy kmp_search);
 - `centre`: blind too (envs.evaluation.KMPCentrePolicy): the oracle's steering and settle with the TCP's observed x, y
-  over the observed target in place of the true lateral error, then pressed ORACLE_PUSH_MM below the prior's seat.
+  over the observed target in place of the true lateral error, then pressed ORACLE_PUSH_MM below the prior's seat;
+- `centre_search`: the same with the search's spiral about the observed target in place of the steering.
 `--perturb-kp-ulp K` moves every OSC gain K float32 ulps up at every episode start (nothing else changes):
 how many outcomes a last-bit difference flips (the Intel / AMD question of issue 40).
 `--oracle-lateral-noise-mm SIGMA`: the oracle knows the lateral error only to within a per-episode N(0, SIGMA^2) bias
@@ -53,7 +54,7 @@ __all__ = ["CATEGORIES", "CeilingGeometry", "CEILING_GEOMETRY", "classify", "SEA
 CATEGORIES = ("success", "seated_then_lost", "seated_but_test_missed", "tilted_or_slipped_in_grasp",
               "time_out_inserting", "held_above_seat", "jammed_in_hole", "jammed_on_chamfer", "time_out_searching",
               "other")
-CONTROLLERS = ("scripted", "oracle", "oracle28", "prior", "prior_push", "search", "centre")
+CONTROLLERS = ("scripted", "oracle", "oracle28", "prior", "prior_push", "search", "centre", "centre_search")
 
 # A seated part the success test misses "by a hair": MuJoCo's soft contact lets a part sink or stand off by up to
 # ~0.2 mm (reference/peg_grip_cpu_facts.md: wall and bottom penetration <= 0.21 mm), so a part within 0.25 mm of
@@ -384,9 +385,9 @@ def make_controller(name: str, env, tables, task: str, seed: int = 0, oracle_lat
                                            push_mm=ORACLE_PUSH_MM, inside_mm=1e3 * (g.rest_height - g.entry_depth),
                                            mesh_pitch=pitch, lateral_noise_mm=oracle_lateral_noise_mm,
                                            noise_seed=seed)
-    if name == "centre":  # blind: the oracle's steering and settle with the observation's x, y; pressed blind
+    if name in ("centre", "centre_search"):  # blind: the oracle's settle, x, y from the observation; pressed blind
         return KMPCentrePolicy.with_floors(tables, env, replace(oracle_params(task), settle_mm=0.3),
-                                           push_mm=ORACLE_PUSH_MM)
+                                           push_mm=ORACLE_PUSH_MM, spiral=name == "centre_search")
     if name == "prior_push":
         return KMPPriorPolicy(KGRLActionPath(pushed_prior(tables, PRIOR_PUSH_MM * 1e-3), env))
     raise ValueError(f"controller must be one of {CONTROLLERS}, got {name!r}")
