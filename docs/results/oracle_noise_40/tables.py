@@ -1,0 +1,67 @@
+"""The README's table from the JSON files beside it and ceiling_40's (tools/ceiling.py's output).
+
+    python docs/results/oracle_noise_40/tables.py
+
+PegInsert Factory 4D, the 128 paired episodes (eval seed 10000). Per controller: success at the last step with
+its exact (Clopper-Pearson) 95 % interval, episodes gained and lost against the prior with the exact McNemar
+(binomial) p, the failure categories; for the oracle with a lateral bias of sigma per axis, the share of biases
+inside the 0.807 mm catch, P(|b| < catch) = 1 - exp(-catch^2 / (2 sigma^2)) (Rayleigh): what it would seat if it
+seated exactly the episodes whose bias lands the part inside the catch. For the blind controllers, success split
+by whether the episode's observation noise on the target (x, y) is inside the catch.
+"""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import binomtest
+
+from vkgrl_newton.tools.ceiling import CATEGORIES, CEILING_GEOMETRY
+
+HERE = Path(__file__).parent
+CEIL = HERE.parent / "ceiling_40"
+SHORT = {"success": "ok", "seated_then_lost": "lost", "seated_but_test_missed": "test", "tilted_or_slipped_in_grasp": "grasp",
+         "time_out_inserting": "slow", "held_above_seat": "held", "jammed_in_hole": "jam-in", "jammed_on_chamfer": "jam-ch",
+         "time_out_searching": "off", "other": "other"}
+ROWS = [  # (label, file, controller key, what it knows of the lateral error)
+    ("prior", CEIL / "PegInsert.json", "prior", "nothing (a = 0)"),
+    ("search", CEIL / "PegInsert.json", "search", "nothing: spiral about where blocked"),
+    ("centre", HERE / "PegInsert_centre.json", "centre", "the observation: TCP over the observed target (1 mm noise)"),
+    ("centre_search", HERE / "PegInsert_centre_search.json", "centre_search", "the observation: spiral about the observed target"),
+    ("oracle, sigma 1.0 mm", HERE / "PegInsert_sigma1.0.json", "oracle", "true error + N(0, 1.0^2) bias per axis"),
+    ("oracle, sigma 0.5 mm", HERE / "PegInsert_sigma0.5.json", "oracle", "true error + N(0, 0.5^2) bias per axis"),
+    ("oracle, sigma 0.25 mm", HERE / "PegInsert_sigma0.25.json", "oracle", "true error + N(0, 0.25^2) bias per axis"),
+    ("oracle, sigma 0", CEIL / "PegInsert_oracle.json", "oracle", "the true error"),
+]
+
+
+def main() -> None:
+    catch = 1e3 * CEILING_GEOMETRY["PegInsert"].catch
+    prior = [r["success"] for r in json.loads((CEIL / "PegInsert.json").read_text())["controllers"]["prior"]["records"]]
+    print("| controller | knows of the lateral error | success [exact 95 %] | Rayleigh P(|b| < catch) | gained / lost vs prior "
+          "(McNemar p) | success, obs noise inside / outside the catch | " + " | ".join(SHORT[c] for c in CATEGORIES) + " |")
+    print("|---|---|---|---:|---|---|" + "---:|" * len(CATEGORIES))
+    for label, path, key, knows in ROWS:
+        if not path.exists():
+            print(f"| {label} | {knows} | not run | | | | " + " | ".join("" for _ in CATEGORIES) + " |")
+            continue
+        d = json.loads(path.read_text())
+        rec = d["controllers"][key]["records"]
+        s = np.array([r["success"] for r in rec])
+        n, k = len(s), int(s.sum())
+        ci = binomtest(k, n).proportion_ci(method="exact")
+        sigma = d.get("oracle_lateral_noise_mm", 0.0) if key == "oracle" else None
+        ray = f"{1 - math.exp(-catch ** 2 / (2 * sigma ** 2)):.3f}" if sigma else ""
+        g = sum(1 for a, b in zip(prior, s) if b and not a)
+        lo = sum(1 for a, b in zip(prior, s) if a and not b)
+        p = binomtest(g, g + lo).pvalue if g + lo else 1.0
+        on = np.array([math.hypot(*r["obs_noise_mm"][:2]) for r in rec]) < catch
+        split = f"{s[on].mean():.3f} ({on.sum()}) / {s[~on].mean():.3f} ({(~on).sum()})"
+        cats = " | ".join(str(d["controllers"][key]["categories"][c]) for c in CATEGORIES)
+        print(f"| {label} | {knows} | {k}/{n} ({k / n:.3f}) [{ci.low:.3f}, {ci.high:.3f}] | {ray} | {g} / {lo} ({p:.2g}) "
+              f"| {split} | {cats} |")
+
+
+if __name__ == "__main__":
+    main()
