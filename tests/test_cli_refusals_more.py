@@ -159,6 +159,8 @@ TOOL_CASES = [  # (argv, what the line says); every tool's flags checked before 
     (["-m", "vkgrl_newton.tools.ceiling", "--json", "{tmp}/c.json", "--seed", "-1"], "--seed -1: must be in [0, 2**32)"),
     (["-m", "vkgrl_newton.tools.ceiling", "--json", "{tmp}/c.json", "--perturb-kp-ulp", "-3"],
      "argument --perturb-kp-ulp: must be an integer >= 0, got '-3'"),
+    (["-m", "vkgrl_newton.tools.ceiling", "--json", "{tmp}/c.json", "--oracle-lateral-noise-mm", "-0.5"],
+     "argument --oracle-lateral-noise-mm: must be a finite number >= 0, got '-0.5'"),
     (["-m", "vkgrl_newton.tools.ceiling", "--json", UNWRITABLE], f"--json {UNWRITABLE}: cannot write in /proc"),
     (["-m", "vkgrl_newton.tools.bench_sac", "--steps", "0"], "argument --steps: must be an integer >= 1, got '0'"),
     (["-m", "vkgrl_newton.tools.bench_sac", "--repeats", "0"], "argument --repeats: must be an integer >= 1, got '0'"),
