@@ -8,6 +8,11 @@ its exact (Clopper-Pearson) 95 % interval, episodes gained and lost against the 
 inside the 0.807 mm catch, P(|b| < catch) = 1 - exp(-catch^2 / (2 sigma^2)) (Rayleigh): what it would seat if it
 seated exactly the episodes whose bias lands the part inside the catch. For the blind controllers, success split
 by whether the episode's observation noise on the target (x, y) is inside the catch.
+
+Second table: the learned policies of the committed studies (30k transitions, seeds 0-4, the same episodes) against
+each controller: per seed, its success minus the controller's on the same 128 episodes; over seeds, results.seeds'
+Student-t interval, sign and Wilcoxon tests and verdict. kgrl and kgrl --obs-history 4 from their run copies;
+vision_kgrl (older code) from its report's per-seed gains over the same prior.
 """
 
 import json
@@ -17,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import binomtest
 
+from vkgrl_newton.results.seeds import format_t, format_tests, over_seeds
 from vkgrl_newton.tools.ceiling import CATEGORIES, CEILING_GEOMETRY
 
 HERE = Path(__file__).parent
@@ -63,5 +69,40 @@ def main() -> None:
               f"| {split} | {cats} |")
 
 
+def learned() -> dict[str, list[float]]:
+    """Per-seed final success (seeds 0-4) of the committed learned runs on these episodes."""
+    res = HERE.parent
+    out = {}
+    for label, d in (("kgrl (quick default)", res / "kgrl_force_40/report/runs/PegInsert_factory_4d_kgrl+reach_keep_prior"),
+                     ("kgrl --obs-history 4", res / "hist_time_40/report/runs/PegInsert_factory_4d_kgrl+obs_history_4")):
+        runs = sorted(d.glob("seed*/metrics.json"), key=lambda f: int(f.parent.name[4:]))
+        out[label] = [json.loads(f.read_text())["success_rate"] for f in runs]
+    st = json.loads((res / "vision_kgrl_28e/report/stats.json").read_text())["prior_gain"][0]
+    out["vision_kgrl (issue 28's code)"] = [st["prior_success"] + g for g in st["seed_gains"]]
+    return out
+
+
+def against() -> None:
+    print("\n| learned (seeds 0-4) | per seed | minus centre (t) | minus search (t) | minus centre_search (t) | "
+          "minus oracle sigma 1.0 (t) | minus oracle sigma 0.5 (t) |")
+    print("|---|---|---|---|---|---|---|")
+    rows = {label: (path, key) for label, path, key, _ in ROWS}
+    refs = []
+    for label in ("centre", "search", "centre_search", "oracle, sigma 1.0 mm", "oracle, sigma 0.5 mm"):
+        path, key = rows[label]
+        refs.append(float(np.mean([r["success"] for r in json.loads(path.read_text())["controllers"][key]["records"]]))
+                    if path.exists() else None)
+    for label, seeds in learned().items():
+        cells = []
+        for ref in refs:
+            if ref is None:
+                cells.append("not run")
+                continue
+            o = over_seeds(np.asarray(seeds) - ref)
+            cells.append(f"{o['mean']:+.3f} {format_t(o)} {o['verdict']}; {format_tests(o)}")
+        print(f"| {label} | {', '.join(f'{v:.3f}' for v in seeds)} | " + " | ".join(cells) + " |")
+
+
 if __name__ == "__main__":
     main()
+    against()
