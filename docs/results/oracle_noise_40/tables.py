@@ -45,7 +45,7 @@ ROWS = [  # (label, file, controller key, what it knows of the lateral error)
 def main() -> None:
     catch = 1e3 * CEILING_GEOMETRY["PegInsert"].catch
     prior = [r["success"] for r in json.loads((CEIL / "PegInsert.json").read_text())["controllers"]["prior"]["records"]]
-    print("| controller | knows of the lateral error | success [exact 95 %] | Rayleigh P(|b| < catch) | gained / lost vs prior "
+    print("| controller | knows of the lateral error | success [exact 95 %] | Rayleigh P(b inside the catch) | gained / lost vs prior "
           "(McNemar p) | success, obs noise inside / outside the catch | " + " | ".join(SHORT[c] for c in CATEGORIES) + " |")
     print("|---|---|---|---:|---|---|" + "---:|" * len(CATEGORIES))
     for label, path, key, knows in ROWS:
