@@ -188,8 +188,9 @@ def test_noisy_oracle_steers_by_the_lateral_error_plus_a_bias_held_per_episode(w
     from vkgrl_newton.kmp.prior import fit_prior
 
     tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
-    with pytest.raises(ValueError, match="lateral_noise_mm"):
-        KMPOraclePolicy.with_floors(tables, fake_env(2), lateral_noise_mm=-1.0)
+    for bad in (-1.0, math.inf, math.nan):
+        with pytest.raises(ValueError, match="lateral_noise_mm"):
+            KMPOraclePolicy.with_floors(tables, fake_env(2), lateral_noise_mm=bad)
     E, sigma = 4096, 0.8
     env = fake_env(E)
     noisy = KMPOraclePolicy.with_floors(tables, env, lateral_noise_mm=sigma, noise_seed=3)
@@ -198,29 +199,53 @@ def test_noisy_oracle_steers_by_the_lateral_error_plus_a_bias_held_per_episode(w
     env.held_p[:, :2] = env.target_base_w[:, :2] + 1e-3 * (torch.rand(E, 2) - 0.5)
     high = mean[-1, 2] + 20e-3
     biases = []
+    assert noisy.params.n_min == 60
+    gain = noisy.path.tables.gain.numpy()
+    w = np.full(3, env.task.w_pos)
     for episode in range(2):
-        for n in (0, 1, 40, 41):  # blocked from step 30 (n_min): want is the steered x, y from 40 on
+        for n in (0, 1, 70, 71):  # held 20 mm over the seat from step 1: blocked at 70 (n_min 60), steering at once
             env.episode_length_buf.fill_(n)
             rel = np.repeat(mean[[n], :3], E, 0)
-            rel[:, 2] = high if n >= 30 else rel[:, 2]
+            rel[:, 2] = high if n >= 1 else rel[:, 2]
             obs = torch.zeros(E, 8)
             obs[:, 1:4] = torch.from_numpy(rel).float()
-            noisy.actions(env, {"policy": obs})
+            a = noisy.actions(env, {"policy": obs}).double().numpy()
             plain.actions(env, {"policy": obs})
             b = noisy.bias.numpy().copy()
             if n == 0:
                 biases.append(b)
             np.testing.assert_array_equal(b, biases[-1])  # held through the episode
             lat = (env.held_p - env.target_base_w)[:, :2].double().numpy()
-            if n >= 40:
+            if n >= 70:
+                assert bool((noisy.since == 70).all())
                 r32 = obs[:, 1:3].double().numpy()
-                np.testing.assert_allclose(noisy._last[0][:, :2].numpy(), r32 - 1.5 * (lat + b), atol=1e-12)
+                want = r32 - 1.5 * (lat + b)
+                np.testing.assert_allclose(noisy._last[0][:, :2].numpy(), want, atol=1e-12)
                 np.testing.assert_allclose(plain._last[0][:, :2].numpy(), r32 - 1.5 * lat, atol=1e-12)
+                # the action applied: eta's x, y as wanted where within reach (the float32 solve's error, as above)
+                eta = mean[n, :3] + np.einsum("ij,ej->ei", gain[n][:3, :3], a[:, :3] * w)
+                inside = np.all(np.abs(a[:, :3]) < 1, axis=1)
+                assert inside.sum() > E // 2
+                np.testing.assert_allclose(eta[inside, :2], want[inside], atol=1e-6)
     assert not np.any(biases[0] == biases[1])  # redrawn at the next start
     for b in biases:  # sample sd within 4.5 of its own standard errors (sigma / sqrt(2 E) ~ 1.1 %); mean likewise
         np.testing.assert_allclose(b.std(0), 1e-3 * sigma, rtol=4.5 / math.sqrt(2 * E))
         assert np.all(np.abs(b.mean(0)) < 4.5 * 1e-3 * sigma / math.sqrt(E))
     assert np.all(plain.bias.numpy() == 0)
+    # the inside take-over holds x, y at the TCP's less 1.5 (e + b) as well
+    env2 = fake_env(2)
+    inside = KMPOraclePolicy.with_floors(tables, env2, push_mm=3.0, inside_mm=24.25, lateral_noise_mm=sigma)
+    obs = torch.zeros(2, 8)
+    obs[:, 1:4] = torch.from_numpy(mean[[0, 0], :3]).float()
+    inside.actions(env2, {"policy": obs})  # step 0: the bias drawn
+    env2.episode_length_buf.fill_(110)
+    d = np.array([[0.05e-3, -0.02e-3, 2.0e-3], [0.0, 0.0, 24.5e-3]])
+    env2.held_p[:] = env2.target_base_w + torch.from_numpy(d).float()
+    inside.actions(env2, {"policy": obs})
+    dd = (env2.held_p - env2.target_base_w)[0, :2].double().numpy()
+    b = inside.bias.numpy()[0]
+    assert inside.found.tolist() == [True, False] and np.all(b != 0)
+    np.testing.assert_allclose(inside.held[0].numpy(), obs[0, 1:3].double().numpy() - 1.5 * (dd + b), atol=1e-12)
 
 
 def test_centre_policy_is_blind_and_steers_the_tcp_over_the_observed_target(wp_cpu):
@@ -238,7 +263,7 @@ def test_centre_policy_is_blind_and_steers_the_tcp_over_the_observed_target(wp_c
         raise AssertionError("a blind policy read a privileged pose")
 
     env.held_pose = privileged
-    env.target_base_w = None
+    env.target_base_w = env.held_p = None
     policy = KMPCentrePolicy.with_floors(tables, env, push_mm=3.0)
     p = policy.params
     mean, gain = policy.path.tables.mean.numpy(), policy.path.tables.gain.numpy()

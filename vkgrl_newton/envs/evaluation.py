@@ -258,14 +258,15 @@ class KMPOraclePolicy(KMPSearchPolicy):
     blocked, the wanted x, y of eta is the TCP's own minus `gain` e, every step (issue 28, session 15: 0.820
     on PegInsert Factory 4D, eval seed 10000). The yardstick of what the floored null space can do when
     the information is there (tools/ceiling.py). With `lateral_noise_mm` sigma, e is known only to within a bias
-    drawn N(0, sigma^2) per axis per episode: the yardstick of an estimate of the hole that good."""
+    drawn N(0, sigma^2) per axis per episode: the yardstick of an estimate of the hole that good (x, y only: the
+    inside test and push_mm still read the true height)."""
 
     def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
                  push_mm: float | None = None, inside_mm: float | None = None, mesh_pitch: float | None = None,
                  lateral_noise_mm: float = 0.0, noise_seed: int = 0):
         super().__init__(action_path, params or ORACLE_PARAMS)
-        if not lateral_noise_mm >= 0:
-            raise ValueError(f"KMPOraclePolicy: lateral_noise_mm={lateral_noise_mm!r}; allowed: >= 0")
+        if not (math.isfinite(lateral_noise_mm) and lateral_noise_mm >= 0):
+            raise ValueError(f"KMPOraclePolicy: lateral_noise_mm={lateral_noise_mm!r}; allowed: a finite number >= 0")
         self.gain = float(gain)
         self.push_mm = push_mm
         self.inside_mm = inside_mm
@@ -313,7 +314,7 @@ class KMPOraclePolicy(KMPSearchPolicy):
 
     def actions(self, env, obs) -> torch.Tensor:
         """inside_mm (privileged): a part that went in without being blocked (its true height above seated below
-        inside_mm) is taken over as if it had dropped while searching: x, y held where they are (less gain e),
+        inside_mm) is taken over as if it had dropped while searching: x, y held where they are (less gain (e + b)),
         z `_settled_z` (with push_mm: pressed to the seat; the prior's seat alone holds some parts above it)."""
         if self.lateral_noise_mm > 0:  # (drawn every step, kept where an episode starts: no host read)
             draw = torch.randn(self.bias.shape, generator=self._noise, dtype=torch.float64, device=self.bias.device)
@@ -360,7 +361,7 @@ class KMPCentrePolicy(KMPSearchPolicy):
     """Blind, as KMPSearchPolicy (it reads only the observation): once blocked, the spiral is replaced by steering
     the TCP over the observed target frame, the oracle's rule with the TCP's own x, y relative to that frame (the
     observation) in place of the privileged lateral error; once the part drops, z is commanded `push_mm` below the
-    prior's seat. What a proprioceptive policy can do with what it observes: its lateral error is then the target's
+    prior's z at that step (the search's settled z, lowered). What a proprioceptive policy can do with what it observes: its lateral error is then the target's
     1 mm observation noise and the part's small offset in the hand (tools/ceiling.py `centre`). With `spiral`, the
     search's spiral instead, centred on the observed target rather than where the TCP was blocked
     (`centre_search`)."""

@@ -15,12 +15,12 @@ every run's final evaluation):
 - `prior_push`: the prior with its seat lowered PRIOR_PUSH_MM (blind; what a demonstration of the push would give);
 - `search`: the blind spiral search in the floored null space (--policy kmp_search);
 - `centre`: blind too (envs.evaluation.KMPCentrePolicy): the oracle's steering and settle with the TCP's observed x, y
-  over the observed target in place of the true lateral error, then pressed ORACLE_PUSH_MM below the prior's seat;
+  over the observed target in place of the true lateral error, then pressed ORACLE_PUSH_MM below the prior's z;
 - `centre_search`: the same with the search's spiral about the observed target in place of the steering.
 `--perturb-kp-ulp K` moves every OSC gain K float32 ulps up at every episode start (nothing else changes):
 how many outcomes a last-bit difference flips (the Intel / AMD question of issue 40).
 `--oracle-lateral-noise-mm SIGMA`: the oracle knows the lateral error only to within a per-episode N(0, SIGMA^2) bias
-per axis (the information ceiling: SIGMA 1 is Factory's observation noise on the target, a camera latent's error
+per axis (its draws seeded by --seed, which also seeds the env and the demonstrator) (the information ceiling: SIGMA 1 is Factory's observation noise on the target, a camera latent's error
 near the hole is ~0.2-0.6 mm).
 `--demos-kp-ulp K` records the prior's demonstrations anew with the same K-ulp move (into --cache-dir, which must
 not hold them yet), fits the prior to them and evaluates it: what a last-bit difference in the *recording*, which
