@@ -195,11 +195,15 @@ class KMPSearchPolicy(Policy):
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None) -> "KMPSearchPolicy":
         """The search in an action path over `tables` with the params' reach floors (train/evaluate.py)."""
+        p = params or SearchParams()
+        return cls(cls.floored_path(tables, env, p), p)
+
+    @staticmethod
+    def floored_path(tables, env, p: SearchParams):
+        """The KGRLActionPath over `tables` with p's reach floors (every with_floors)."""
         from .kgrl_action import KGRLActionPath
 
-        p = params or SearchParams()
-        return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
-                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p)
+        return KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm, reach_floor_z=1e-3 * p.reach_floor_z_mm)
 
     def actions(self, env, obs) -> torch.Tensor:
         """(E, D) actions in [-1, 1] for this control step (the KGRL action space)."""
@@ -289,12 +293,8 @@ class KMPOraclePolicy(KMPSearchPolicy):
                     push_mm: float | None = None, inside_mm: float | None = None,
                     mesh_pitch: float | None = None, lateral_noise_mm: float = 0.0,
                     noise_seed: int = 0) -> "KMPOraclePolicy":
-        from .kgrl_action import KGRLActionPath
-
         p = params or ORACLE_PARAMS
-        return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
-                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm, inside_mm, mesh_pitch,
-                   lateral_noise_mm, noise_seed)
+        return cls(cls.floored_path(tables, env, p), p, gain, push_mm, inside_mm, mesh_pitch, lateral_noise_mm, noise_seed)
 
     def lateral(self, env) -> torch.Tensor:
         """(E, 2) float64 m, world x, y: the held part's origin minus its target (privileged), plus the episode's
@@ -327,7 +327,7 @@ class KMPOraclePolicy(KMPSearchPolicy):
             new = (n > 0) & (self.since < 0) & (d[:, 2] < 1e-3 * self.inside_mm)
             self.since = torch.where(new, n, self.since)
             self.found |= new
-            self.held = torch.where(new.unsqueeze(-1), rel[:, :2] - self.gain * self.lateral(env), self.held)
+            self.held = torch.where(new.unsqueeze(-1), rel[:, :2] - self.gain * (d[:, :2] + self.bias), self.held)
         a = super().actions(env, obs)
         if self.mesh_pitch is None:
             return a
@@ -374,11 +374,8 @@ class KMPCentrePolicy(KMPSearchPolicy):
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
                     push_mm: float = 0.0, spiral: bool = False) -> "KMPCentrePolicy":
-        from .kgrl_action import KGRLActionPath
-
         p = params or ORACLE_PARAMS
-        return cls(KGRLActionPath(tables, env, reach_floor=1e-3 * p.reach_floor_mm,
-                                  reach_floor_z=1e-3 * p.reach_floor_z_mm), p, gain, push_mm, spiral)
+        return cls(cls.floored_path(tables, env, p), p, gain, push_mm, spiral)
 
     def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         if self.spiral:  # the search's spiral and lead, about x, y = 0 of the observed target frame
