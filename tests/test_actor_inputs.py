@@ -59,6 +59,27 @@ def test_the_runs_options_and_refusals(tmp_path):
     assert plain.obs_dim == 8 and "tcp_velocity_obs" not in plain.meta() and "force_obs" not in plain.meta()
     with pytest.raises(ConfigError, match="--force-obs is for --env factory"):
         run("--method", "sac", "--env", "forge", "--force-obs")
+    # the camera's estimate over the hole: two more inputs beside the 16-d latent, recorded only when asked
+    probe = run("--method", "vision_kgrl", "--vision-probe-obs")
+    assert probe.obs_dim == 8 + 16 + 2 and probe.vision_width == 18 and probe.meta()["vision_probe_obs"]
+    vision = run("--method", "vision_kgrl")
+    assert vision.obs_dim == 8 + 16 and "vision_probe_obs" not in vision.meta()
+    with pytest.raises(ConfigError, match="--vision-probe-obs is for the vision methods"):
+        run("--method", "kgrl", "--vision-probe-obs")
+    with pytest.raises(ConfigError, match="--vision-probe-obs takes the cached VAE"):
+        run("--method", "vision_kgrl", "--vision-probe-obs", "--vae", str(tmp_path / "vae.pt"))
+    # evaluate rebuilds the run's input from its checkpoint's record
+    import argparse
+
+    from vkgrl_newton.run.evaluate import evaluation_config
+
+    args = argparse.Namespace(task="PegInsert", env="factory", action_dim=4, seed=0, num_envs=2, no_time_obs=False,
+                              geometry=None, demos=None, kmp_reference="gmr", device="cpu", cache_dir=tmp_path,
+                              eager_physics=False, policy=None)
+    meta = probe.meta()
+    assert evaluation_config(args, {"meta": meta}).vision_width == 18
+    del meta["vision_probe_obs"]
+    assert evaluation_config(args, {"meta": meta}).vision_width == 16
 
 
 @pytest.mark.slow

@@ -310,6 +310,141 @@ def test_centre_policy_is_blind_and_steers_the_tcp_over_the_observed_target(wp_c
     assert spiral.since.tolist() == [p.n_min, p.n_min]
 
 
+def test_the_camera_estimate_steers_the_oracle_and_the_centre_policy(wp_cpu):
+    """lateral_estimate in place of the truth: the oracle's x, y of eta = the TCP's minus 1.5 (estimate + b), with the
+    estimate read once a step (it renders) and the true lateral error never used for x, y; the inside take-over holds
+    x, y at the TCP's less 1.5 x the estimate; KMPCentrePolicy steers by it with no privileged read, and refuses it
+    beside the spiral."""
+    from vkgrl_newton.envs.evaluation import KMPCentrePolicy, KMPOraclePolicy
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import fit_prior
+
+    tables = fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
+    E = 4
+    env = fake_env(E)
+    env.held_p[:, :2] = env.target_base_w[:, :2] + 1e-3  # the truth: +1 mm on x and y in every world
+    est = torch.tensor([[0.3e-3, -0.2e-3], [-0.9e-3, 0.4e-3], [0.0, 0.0], [1.1e-3, 1.3e-3]], dtype=torch.float64)
+    calls = []
+
+    def estimate(e):
+        calls.append(int(e.episode_length_buf[0]))
+        return est
+
+    def blocked_at_70(policy):
+        """Steps 0, 1, 70, 71 held 20 mm over the seat from step 1 (n_min 60: blocked at 70); the wanted x, y at 70
+        and at 71 against the TCP's less 1.5 x the estimate."""
+        mean = policy.path.tables.mean.numpy()
+        for n in (0, 1, 70, 71):
+            env.episode_length_buf.fill_(n)
+            rel = np.repeat(mean[[n], :3], E, 0)
+            rel[:, 2] = mean[-1, 2] + 20e-3 if n >= 1 else rel[:, 2]
+            obs = torch.zeros(E, 8)
+            obs[:, 1:4] = torch.from_numpy(rel).float()
+            policy.actions(env, {"policy": obs})
+            if n >= 70:
+                r32 = obs[:, 1:3].double().numpy()
+                np.testing.assert_allclose(policy._last[0][:, :2].numpy(), r32 - 1.5 * est.numpy(), atol=1e-12)
+        return mean
+
+    oracle = KMPOraclePolicy.with_floors(tables, env, lateral_estimate=estimate)
+    mean = blocked_at_70(oracle)
+    assert calls == [0, 1, 70, 71]  # once a step
+    # the take-over of a part found inside unblocked: x, y at the TCP's less 1.5 x the estimate
+    env2 = fake_env(2)
+    inside = KMPOraclePolicy.with_floors(tables, env2, push_mm=3.0, inside_mm=24.25, lateral_estimate=lambda e: est[:2])
+    env2.episode_length_buf.fill_(110)
+    env2.held_p[:] = env2.target_base_w + torch.tensor([[0.05e-3, -0.02e-3, 2.0e-3], [0.0, 0.0, 24.5e-3]])
+    obs = torch.zeros(2, 8)
+    obs[:, 1:4] = torch.from_numpy(mean[[110, 110], :3]).float()
+    inside.actions(env2, {"policy": obs})
+    assert inside.found.tolist() == [True, False]
+    np.testing.assert_allclose(inside.held[0].numpy(), obs[0, 1:3].double().numpy() - 1.5 * est[0].numpy(), atol=1e-12)
+    # the centre policy: nothing privileged, x, y of eta = the TCP's minus 1.5 x the estimate once blocked
+
+    def privileged():
+        raise AssertionError("the centre policy read a privileged pose")
+
+    env.held_pose = privileged
+    blocked_at_70(KMPCentrePolicy.with_floors(tables, env, push_mm=3.0, lateral_estimate=estimate))
+    with pytest.raises(ValueError, match="spiral and lateral_estimate"):
+        KMPCentrePolicy.with_floors(tables, env, spiral=True, lateral_estimate=estimate)
+
+
+def test_the_latent_lateral_estimate_turns_the_probe_into_the_world_and_scores_near_hole_frames():
+    """lateral_from_image: the probe's image-frame vector (fixed tip minus held) turned into the world by the camera's
+    optical pose and negated (scipy's rotation as the reference); LatentLateral's score counts only the near-hole
+    frames (the held part within 10 mm, xy, and less than 20 mm above the tip)."""
+    from scipy.spatial.transform import Rotation
+
+    from vkgrl_newton.envs.camera_latent import LatentLateral
+    from vkgrl_newton.vision.probe import lateral_from_image
+
+    E = 5
+    rng = np.random.default_rng(0)
+    q = Rotation.random(E, random_state=1).as_quat()  # xyzw
+    d_image = 1e-3 * rng.normal(size=(E, 3))
+    out = lateral_from_image(torch.from_numpy(d_image), torch.from_numpy(q)).numpy()
+    np.testing.assert_allclose(out, -Rotation.from_quat(q).apply(d_image)[:, :2], atol=1e-15)
+    held = rng.normal(size=(E, 3))
+    tip = held.copy()
+    tip[:, :2] -= 1e-3 * np.array([[1, 0], [0, 2], [3, 0], [0, 0], [40, 0]])  # world 4 40 mm away: not near
+    tip[:, 2] -= np.array([5e-3, 5e-3, 5e-3, 30e-3, 5e-3])  # world 3 30 mm above: not near
+    env = SimpleNamespace(held_pose=lambda: (torch.from_numpy(held).float(), None),
+                          fixed_tip_w=torch.from_numpy(tip).float())
+    est = LatentLateral.__new__(LatentLateral)  # (its __init__ builds a real camera)
+    est.sq, est.count = torch.zeros(2, dtype=torch.float64), torch.zeros((), dtype=torch.float64)
+    assert est.rmse_mm() == {"x": None, "y": None, "frames": 0}
+    est.score(env, torch.from_numpy(out))
+    truth = (torch.from_numpy(held).float() - torch.from_numpy(tip).float()).double().numpy()[:, :2]
+    score = est.rmse_mm()
+    assert score["frames"] == 3
+    np.testing.assert_allclose([score["x"], score["y"]], 1e3 * np.sqrt(((out[:3] - truth[:3]) ** 2).mean(0)), rtol=1e-9)
+
+
+def test_the_probe_in_torch_is_the_fitted_probe():
+    """ProbeMLP(NearHoleRegressor.state()) reproduces scikit-learn's predictions (MLP and affine; float64: to
+    rounding), and in float32 to float32's rounding of ~1e-3 m outputs."""
+    from vkgrl_newton.vision.probe import NearHoleRegressor, ProbeMLP
+
+    rng = np.random.default_rng(1)
+    z = rng.normal(size=(300, 16))
+    g = np.zeros((300, 13))
+    g[:, 12] = 1.0
+    g[:, 3:6] = 1e-3 * np.tanh(z[:, :3] + z[:, 3:6] ** 2)
+    g[:, 2] = -1e-3
+    for model in ("mlp", "linear"):
+        reg = NearHoleRegressor(z, g, model=model)
+        probe = ProbeMLP(reg.state())
+        np.testing.assert_allclose(probe(torch.from_numpy(z)).numpy(), reg(z), rtol=0, atol=1e-15)
+        # float32 input and weights' rounding (6e-8 relative) through a few 64-wide layers on ~1e-3 m: < 1e-8 m
+        np.testing.assert_allclose(probe(torch.from_numpy(z).float()).double().numpy(), reg(z), rtol=0, atol=1e-8)
+
+
+def test_the_near_hole_regressor_fits_only_near_hole_frames_and_recovers_a_linear_map():
+    """NearHoleRegressor (linear model): where the image-frame target is an exact affine map of the latent on the
+    near-hole frames, the fit recovers it (float64 least squares' error); far frames with other labels do not pull it;
+    a latent of the wrong width is refused."""
+    from vkgrl_newton.vision.probe import NearHoleRegressor, near_hole_mask, relative_in_image
+
+    rng = np.random.default_rng(0)
+    n, d = 400, 6
+    z = rng.normal(size=(n, d))
+    A, c = rng.normal(size=(d, 3)), rng.normal(size=3)
+    g = np.zeros((n, 13))
+    g[:, 12] = 1.0  # the identity camera rotation: image frame = world
+    g[:, 3:6] = 1e-3 * (z @ A + c)  # fixed tip; held at 0: the target is the tip itself
+    g[:, 2] = -1e-3  # the held part 1 mm below the tip: inside the 20 mm band
+    g[np.arange(n) % 4 == 0, 0] = 0.05  # a quarter 50 mm away on x: outside the near-hole mask, labels off the map
+    near = near_hole_mask(g)
+    assert 0.5 * n < near.sum() < 0.75 * n + 1
+    reg = NearHoleRegressor(z, g, model="linear")
+    assert reg.num_fit == int(near.sum())
+    # the map recovered on the near frames (ridge 1e-6 of the standardized inputs: ~1e-9 m of shrinkage)
+    np.testing.assert_allclose(reg(z)[near], relative_in_image(g)[near], atol=1e-8)
+    with pytest.raises(ValueError, match="columns"):
+        reg(z[:, :3])
+
+
 def test_oracle_takes_over_a_part_that_went_in_unblocked(wp_cpu):
     """inside_mm: a world whose part is found inside (true height above seated under inside_mm) without having been
     blocked is settled at once: x, y held at the TCP's less 1.5 e, z the TCP's less the true height less push_mm."""

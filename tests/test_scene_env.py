@@ -466,6 +466,23 @@ def test_contact_camera_looks_at_the_peg_tip_and_the_latent_renders_the_encoders
                           camera=dataclasses.asdict(small))
     with pytest.raises(ValueError, match="renders 32 x 32, its input is 64 x 64"):
         CameraLatent(env, wrong)
+    # --vision-probe-obs: the probe's image-frame vector turned into the world by this camera's optical pose follows
+    # the latent (an affine probe of known weights; lateral_from_image itself is checked against scipy in test_ceiling)
+    from vkgrl_newton.vision.probe import ProbeMLP, lateral_from_image
+
+    rng = np.random.default_rng(0)
+    state = {"x_mean": np.zeros(encoder.latent_dim), "x_scale": np.ones(encoder.latent_dim), "y_mean": np.zeros(3),
+             "y_scale": np.ones(3), "weights": [1e-3 * rng.normal(size=(encoder.latent_dim, 3))],
+             "biases": [1e-3 * rng.normal(size=3)]}
+    with_probe = CameraLatent(env, encoder, probe=ProbeMLP(state))
+    out = with_probe(env)
+    z = latent(env)
+    assert out.shape == (E, encoder.latent_dim + 2) and torch.equal(out[:, :-2], z)
+    d = z.double().numpy() @ state["weights"][0] + state["biases"][0]
+    q = with_probe.camera.optical_poses_w(*env.hand_pose())[:, 3:]
+    want = lateral_from_image(torch.from_numpy(d), q.double()).numpy()
+    # float32 latent and quaternion (6e-8 relative) on ~1e-3 m: ~1e-10 m
+    np.testing.assert_allclose(out[:, -2:].double().numpy(), want, rtol=0, atol=1e-9)
 
 
 # ------------------------------------------------------------------ blow-ups (these perturb the env: keep last)

@@ -267,8 +267,11 @@ class KMPOraclePolicy(KMPSearchPolicy):
 
     def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
                  push_mm: float | None = None, inside_mm: float | None = None, mesh_pitch: float | None = None,
-                 lateral_noise_mm: float = 0.0, noise_seed: int = 0):
+                 lateral_noise_mm: float = 0.0, noise_seed: int = 0, lateral_estimate=None):
         super().__init__(action_path, params or ORACLE_PARAMS)
+        # an estimate of the lateral error in place of the truth (envs.camera_latent.LatentLateral: the camera's):
+        # called once a control step, env -> (E, 2) float64 m, world x, y of the held part minus the fixed tip
+        self.lateral_estimate = lateral_estimate
         if not (math.isfinite(lateral_noise_mm) and lateral_noise_mm >= 0):
             raise ValueError(f"KMPOraclePolicy: lateral_noise_mm={lateral_noise_mm!r}; allowed: a finite number >= 0")
         self.gain = float(gain)
@@ -292,13 +295,16 @@ class KMPOraclePolicy(KMPSearchPolicy):
     def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
                     push_mm: float | None = None, inside_mm: float | None = None,
                     mesh_pitch: float | None = None, lateral_noise_mm: float = 0.0,
-                    noise_seed: int = 0) -> "KMPOraclePolicy":
+                    noise_seed: int = 0, lateral_estimate=None) -> "KMPOraclePolicy":
         p = params or ORACLE_PARAMS
-        return cls(cls.floored_path(tables, env, p), p, gain, push_mm, inside_mm, mesh_pitch, lateral_noise_mm, noise_seed)
+        return cls(cls.floored_path(tables, env, p), p, gain, push_mm, inside_mm, mesh_pitch, lateral_noise_mm, noise_seed,
+                   lateral_estimate)
 
     def lateral(self, env) -> torch.Tensor:
-        """(E, 2) float64 m, world x, y: the held part's origin minus its target (privileged), plus the episode's
-        bias (lateral_noise_mm; zero without)."""
+        """(E, 2) float64 m, world x, y: the held part's origin minus its target (privileged; with lateral_estimate,
+        the estimate instead), plus the episode's bias (lateral_noise_mm; zero without)."""
+        if self.lateral_estimate is not None:
+            return self.lateral_estimate(env).to(torch.float64) + self.bias
         return (env.held_pose()[0] - env.target_base_w)[:, :2].to(torch.float64) + self.bias
 
     def mesh_yaw(self, env) -> torch.Tensor:
@@ -320,6 +326,7 @@ class KMPOraclePolicy(KMPSearchPolicy):
             draw = torch.randn(self.bias.shape, generator=self._noise, dtype=torch.float64, device=self.bias.device)
             start = (env.episode_length_buf == 0).unsqueeze(-1)
             self.bias = torch.where(start, 1e-3 * self.lateral_noise_mm * draw, self.bias)
+        self._lateral = self.lateral(env)  # once a step (an estimate renders the camera): _search_xy's, the take-over's
         if self.inside_mm is not None:
             n = env.episode_length_buf.long()
             rel = policy_observation(obs)[:, 1:4].to(torch.float64)
@@ -327,7 +334,7 @@ class KMPOraclePolicy(KMPSearchPolicy):
             new = (n > 0) & (self.since < 0) & (d[:, 2] < 1e-3 * self.inside_mm)
             self.since = torch.where(new, n, self.since)
             self.found |= new
-            self.held = torch.where(new.unsqueeze(-1), rel[:, :2] - self.gain * (d[:, :2] + self.bias), self.held)
+            self.held = torch.where(new.unsqueeze(-1), rel[:, :2] - self.gain * self._lateral, self.held)
         a = super().actions(env, obs)
         if self.mesh_pitch is None:
             return a
@@ -345,7 +352,7 @@ class KMPOraclePolicy(KMPSearchPolicy):
         return torch.where(on.unsqueeze(-1), a4, a)
 
     def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
-        return rel[:, :2] - self.gain * self.lateral(env)  # privileged
+        return rel[:, :2] - self.gain * self._lateral  # privileged (or the estimate's)
 
     def _settled_z(self, env, rel: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         """push_mm None: the prior's z (issue 28). Else privileged too: the TCP's z minus the held part's true
@@ -367,21 +374,26 @@ class KMPCentrePolicy(KMPSearchPolicy):
     (`centre_search`)."""
 
     def __init__(self, action_path, params: SearchParams | None = None, gain: float = ORACLE_GAIN, push_mm: float = 0.0,
-                 spiral: bool = False):
+                 spiral: bool = False, lateral_estimate=None):
         super().__init__(action_path, params or ORACLE_PARAMS)
+        if spiral and lateral_estimate is not None:
+            raise ValueError("KMPCentrePolicy: spiral and lateral_estimate exclude each other (the spiral steers by none)")
         self.gain, self.push_mm, self.spiral = float(gain), float(push_mm), bool(spiral)
+        self.lateral_estimate = lateral_estimate  # as KMPOraclePolicy's: steer by it instead of the observed target
 
     @classmethod
     def with_floors(cls, tables, env, params: SearchParams | None = None, gain: float = ORACLE_GAIN,
-                    push_mm: float = 0.0, spiral: bool = False) -> "KMPCentrePolicy":
+                    push_mm: float = 0.0, spiral: bool = False, lateral_estimate=None) -> "KMPCentrePolicy":
         p = params or ORACLE_PARAMS
-        return cls(cls.floored_path(tables, env, p), p, gain, push_mm, spiral)
+        return cls(cls.floored_path(tables, env, p), p, gain, push_mm, spiral, lateral_estimate)
 
     def _search_xy(self, env, rel: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         if self.spiral:  # the search's spiral and lead, about x, y = 0 of the observed target frame
             p = self.params
             wanted = spiral_offset((n - self.since).to(torch.float64), p.pitch_mm * 1e-3, p.speed_mm * 1e-3)
             return wanted + p.track * (wanted - rel[:, :2])
+        if self.lateral_estimate is not None:  # the camera's estimate of the held part over the hole
+            return rel[:, :2] - self.gain * self.lateral_estimate(env).to(torch.float64)
         return rel[:, :2] - self.gain * rel[:, :2]  # the TCP toward x, y = 0 of the observed target frame
 
     def _settled_z(self, env, rel: torch.Tensor, m: torch.Tensor) -> torch.Tensor:

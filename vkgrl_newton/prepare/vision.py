@@ -53,7 +53,8 @@ from ..vision.train import train_vae
 from ..vision.vae import FrozenEncoder, VAEConfig, load_vae
 from .images import CollectConfig, collect_images, collection_key, default_image_dir
 
-__all__ = ["VisionPreset", "VISION_PRESETS", "load_or_make_encoder", "default_vae_dir", "untrained_preset_latent"]
+__all__ = ["VisionPreset", "VISION_PRESETS", "load_or_make_encoder", "default_vae_dir", "untrained_preset_latent",
+           "load_or_make_probe", "default_probe_path"]
 
 
 @dataclass(frozen=True)
@@ -163,6 +164,66 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
     encoder = FrozenEncoder(vae, camera=payload["meta"].get("camera"))
     return encoder, {"vae": str(vae_path), "resolution": encoder.config.resolution,
                      "latent_dim": encoder.latent_dim}
+
+
+def default_probe_path(cache_dir, task: str, preset: VisionPreset, num_envs: int = 16) -> Path:
+    """cache/<task>/<the VAE's entry>/near_hole_probe_mlp_seed<S>.npz: the probe belongs to that VAE and its images."""
+    return default_vae_dir(cache_dir, task, preset, num_envs) / f"near_hole_probe_mlp_seed{preset.seed}.npz"
+
+
+_PROBE_ARRAYS = ("x_mean", "x_scale", "y_mean", "y_scale", "num_fit", "held_out_rmse_mm", "held_out_frames",
+                 "num_layers")
+
+
+def load_or_make_probe(task: str, preset: VisionPreset, cache_dir, encoder: FrozenEncoder, num_envs: int = 16,
+                       log=print):
+    """The near-hole probe of the preset's VAE (--vision-probe-obs; tools/ceiling.py's camera estimate): an MLP
+    (vision.probe.NearHoleRegressor) from the frozen encoder's latent to the fixed tip minus the held part in the
+    image's frame, fitted on every near-hole frame of the VAE's own image set with the set's privileged geometry,
+    as a pose estimator is trained in simulation. Made on first use under its cache entry's lock (seconds) and
+    written atomically; returns (vision.probe.ProbeMLP on the CPU, its path, {"num_fit", "held_out_rmse_mm",
+    "held_out_frames"}: the same model fitted on the set's training episodes and scored on its validation ones,
+    image axes x, y, z)."""
+    import numpy as np
+
+    from .._io import atomic_savez, load_npz
+    from ..vision.dataset import ImageSet
+    from ..vision.probe import NearHoleRegressor, ProbeMLP, near_hole_mask, relative_in_image
+
+    path = default_probe_path(cache_dir, task, preset, num_envs)
+    with entry_lock(path, log=log, what=f"the {task} near-hole probe"):
+        if not path.is_file():
+            images = ImageSet(default_image_dir(cache_dir, preset.collect_config(task, num_envs)),
+                              resolution=preset.resolution, task=task)
+            if not images.has_geometry:
+                raise ValueError(f"{images.dir}: the image set has no geometry (format 1): the probe cannot be fitted")
+            log(f"fitting the near-hole probe of the {task} VAE -> {path}")
+            z = np.concatenate([encoder(np.asarray(images.images[i:i + 256])).double().cpu().numpy()
+                                for i in range(0, len(images), 256)])  # the latents as the policy gets them
+            g = images.geometry.astype(np.float64)
+            train = images.split == 0
+            near_val = near_hole_mask(g[~train])
+            held_out = NearHoleRegressor(z[train], g[train], seed=preset.seed)
+            err = held_out(z[~train][near_val]) - relative_in_image(g[~train][near_val])
+            state = NearHoleRegressor(z, g, seed=preset.seed).state()
+            arrays = {k: state[k] for k in ("x_mean", "x_scale", "y_mean", "y_scale")}
+            arrays.update({f"w{i}": w for i, w in enumerate(state["weights"])})
+            arrays.update({f"b{i}": b for i, b in enumerate(state["biases"])})
+            atomic_savez(path, False, num_layers=np.array(len(state["weights"])), num_fit=np.array(state["num_fit"]),
+                         held_out_rmse_mm=1e3 * np.sqrt((err ** 2).mean(axis=0)),
+                         held_out_frames=np.array(int(near_val.sum())), **arrays)
+    data = load_npz(path, "the near-hole probe", _PROBE_ARRAYS)
+    k = int(data["num_layers"])
+    try:
+        probe = ProbeMLP({"x_mean": data["x_mean"], "x_scale": data["x_scale"], "y_mean": data["y_mean"],
+                          "y_scale": data["y_scale"], "weights": [data[f"w{i}"] for i in range(k)],
+                          "biases": [data[f"b{i}"] for i in range(k)]})
+    except (KeyError, ValueError, RuntimeError, TypeError) as e:
+        raise ValueError(f"{path}: not a near-hole probe ({type(e).__name__}: {e}); delete it to fit it again") from None
+    if probe.latent_dim != encoder.latent_dim:
+        raise ValueError(f"{path}: a probe of a {probe.latent_dim}-d latent, the VAE's is {encoder.latent_dim}-d")
+    return probe, path, {"num_fit": int(data["num_fit"]), "held_out_frames": int(data["held_out_frames"]),
+                         "held_out_rmse_mm": dict(zip("xyz", map(float, data["held_out_rmse_mm"])))}
 
 
 def untrained_preset_latent(env, preset: str):

@@ -53,18 +53,30 @@ def build_env(cfg: RunConfig, encoder=None, solver: str | None = None):
     sim = SimConfig(geometry=cfg.geometry) if solver is None else SimConfig(solver=solver, geometry=cfg.geometry)
     env = AssemblyEnv(EnvConfig(task=cfg.task, family=cfg.env, action_dim=cfg.action_dim, num_envs=cfg.num_envs,
                                 device=cfg.device, seed=cfg.seed,
-                                vision_latent_dim=encoder.latent_dim if encoder is not None else 0,
+                                vision_latent_dim=cfg.vision_width if encoder is not None else 0,
                                 sim=sim, graph=not cfg.eager_physics, privileged_obs=cfg.privileged_critic,
                                 tcp_velocity_obs=cfg.tcp_velocity_obs, force_obs=cfg.force_obs))
-    attach_encoder(env, encoder)
+    attach_encoder(env, encoder, build_probe(cfg, encoder))
     return env
 
 
-def attach_encoder(env, encoder) -> None:
+def build_probe(cfg: RunConfig, encoder, log=print):
+    """--vision-probe-obs: the near-hole probe of the run's (cached) VAE, fitted on first use; else None."""
+    if encoder is None or not cfg.vision_probe_obs:
+        return None
+    from ..prepare.vision import VISION_PRESETS, load_or_make_probe
+
+    probe, path, record = load_or_make_probe(cfg.task, VISION_PRESETS[cfg.preset], cfg.cache_dir, encoder, log=log)
+    log(f"near-hole probe loaded: {path} (held-out RMSE, image x / y / z: "
+        + " / ".join(f"{v:.2f}" for v in record["held_out_rmse_mm"].values()) + " mm)")
+    return probe
+
+
+def attach_encoder(env, encoder, probe=None) -> None:
     if encoder is not None:
         from ..envs.camera_latent import CameraLatent
 
-        env.attach_vision(CameraLatent(env, encoder))
+        env.attach_vision(CameraLatent(env, encoder, probe=probe))
 
 
 def build_action_path(cfg: RunConfig, env, log=print):

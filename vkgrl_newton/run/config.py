@@ -68,6 +68,9 @@ class RunConfig:
     tcp_velocity_obs: bool = False
     force_obs: bool = False
     obs_history: int = 0  # the SAC methods: the last K (input, action) pairs stacked onto the input (envs.history)
+    # the vision methods: the near-hole probe's estimate of the held part over the hole (world x, y, from the latent;
+    # prepare.vision.load_or_make_probe) appended to the latent (envs.camera_latent)
+    vision_probe_obs: bool = False
     ppo: dict | None = None  # rsl-rl's runner configuration (ppo methods)
     # the prior (kmp methods): your demonstrations or the scripted ones, the KMP's reference and
     # parameters (None: kmp.prior's defaults; a resumed run's own), the action path's reach floors (mm)
@@ -103,10 +106,16 @@ class RunConfig:
         return VISION_LATENT_DIM if self.method_row.vision else 0
 
     @property
+    def vision_width(self) -> int:
+        """The vision slot's width: the latent, plus the probe's x, y with vision_probe_obs (envs.camera_latent's
+        LATERAL_DIM, a literal here: the command line parses before torch loads)."""
+        return self.latent_dim + (2 if self.vision_probe_obs else 0)
+
+    @property
     def obs_dim(self) -> int:
         """The policy input's width: observation_dim(), the same function the env uses, less time if ablated,
         plus the KMP query's phase with the time action."""
-        width = (observation_dim(self.env, self.latent_dim, self.tcp_velocity_obs, self.force_obs)
+        width = (observation_dim(self.env, self.vision_width, self.tcp_velocity_obs, self.force_obs)
                  - (0 if self.time_obs else 1) + (1 if self.kgrl_time_action else 0))
         # envs.history.stacked_width (torch-free here: the command line parses before torch loads)
         return width + self.obs_history * (width + self.agent_action_dim)
@@ -157,7 +166,7 @@ class RunConfig:
             meta["privileged_critic"] = True
         if self.kgrl_time_action:  # likewise
             meta["kgrl_time_action"] = self.kgrl_time_action
-        for name in ("tcp_velocity_obs", "force_obs"):  # likewise
+        for name in ("tcp_velocity_obs", "force_obs", "vision_probe_obs"):  # likewise
             if getattr(self, name):
                 meta[name] = True
         if self.obs_history:  # likewise
@@ -199,6 +208,11 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
     ap.add_argument("--force-obs", action="store_true", default=None,
                     help="Factory: the policy also observes the smoothed contact force (with Forge's 1 N noise; the "
                          "KGRL paper's actor reads the wrench). A deviation from eq. 5.5; not yet ablated")
+    ap.add_argument("--vision-probe-obs", action="store_true", default=None,
+                    help="vision methods: the policy also reads the camera's estimate of the held part over the hole: "
+                         "the cached VAE's latent through a near-hole probe fitted on the VAE's own images with their "
+                         "privileged geometry (as a pose estimator is trained in simulation), world x, y. Not with "
+                         "--vae. A deviation from eq. 5.6")
     ap.add_argument("--obs-history", type=int, default=None, metavar="K",
                     help="the SAC methods: the policy's input carries its last K inputs and actions (zeros before the "
                          "episode began; envs.history), a feed-forward form of Factory's LSTM actor. 0 (default): none, "

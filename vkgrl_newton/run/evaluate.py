@@ -101,7 +101,7 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      seat_press_mm=prior.get("seat_press_mm", 0.0),
                      vae=Path(meta["vision"]["vae"]) if "vision" in meta else None,
                      kgrl_time_action=meta.get("kgrl_time_action", 0), tcp_velocity_obs=meta.get("tcp_velocity_obs", False),
-                     force_obs=meta.get("force_obs", False),
+                     force_obs=meta.get("force_obs", False), vision_probe_obs=meta.get("vision_probe_obs", False),
                      sac=None, ppo=meta.get("ppo"), device=args.device, cache_dir=args.cache_dir, progress=True,
                      eager_physics=bool(args.eager_physics))
 

@@ -29,7 +29,7 @@ _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first
                   "nothing to resume; choose another directory, or delete this one to start it again")
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
 _RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic",
-                 "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history")
+                 "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history", "vision_probe_obs")
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,9 @@ def resolve(parser, argv, torch_threads: int | None = None) -> Resolved | Done:
     """torch_threads: the intra-op threads the run will train with (run.py: 1), for the CPU matmul choice."""
     ns = parser.parse_args(argv)
     ns.torch_threads = torch_threads
+    if ns.vision_probe_obs and ns.vae is not None:  # (before a resume fills ns.vae from the run's own record)
+        raise ConfigError("--vision-probe-obs takes the cached VAE of the task and preset: its probe is fitted on that "
+                          "VAE's own image set, which a given --vae does not come with; leave out --vae")
     ns.sac_config, ns.ppo_cfg, payload = None, None, None
     _check_run_dir(ns)
     if ns.resume:
@@ -207,6 +210,8 @@ def _check_options(ns) -> None:
             raise ConfigError(f"{flag} is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
     if ns.vae is not None and not m.vision:
         raise ConfigError(f"--vae is for the vision methods ({names(vision=True)}), not {ns.method!r}")
+    if ns.vision_probe_obs and not m.vision:
+        raise ConfigError(f"--vision-probe-obs is for the vision methods ({names(vision=True)}), not {ns.method!r}")
     if ns.run_dir is not None and ns.run_dir.exists() and not ns.run_dir.is_dir():
         raise ConfigError(f"--run-dir {ns.run_dir} is a file; give a directory (new, or a run's with --resume)")
     for flag, path in (("--run-dir", ns.run_dir), ("--cache-dir", ns.cache_dir)):  # (the default run dir: runs/train)
@@ -326,6 +331,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
         privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
         tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs), obs_history=int(ns.obs_history or 0),
+        vision_probe_obs=bool(ns.vision_probe_obs),
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,
         sac=ns.sac_config, ppo=ns.ppo_cfg, demos=ns.demos, num_demos=ns.num_demos, kmp_reference=reference,
         kmp_params=kmp_params, vae=ns.vae, total_steps=ns.total_steps,

@@ -17,6 +17,14 @@ every run's final evaluation):
 - `centre`: blind too (envs.evaluation.KMPCentrePolicy): the oracle's steering and settle with the TCP's observed x, y
   over the observed target in place of the true lateral error, then pressed ORACLE_PUSH_MM below the prior's z;
 - `centre_search`: the same with the search's spiral about the observed target in place of the steering.
+- `oracle_latent`: the oracle with the lateral error read from the camera in place of the truth (its z rules stay
+  privileged, as with --oracle-lateral-noise-mm): the quick preset's VAE latent through the near-hole probe
+  (prepare.vision.load_or_make_probe: an MLP fitted on every near-hole frame of the VAE's own image set), turned into
+  the world by the camera's pose (envs.camera_latent.LatentLateral), exactly what --vision-probe-obs gives the
+  policy. What a policy that reads this latent as well as the probe does could reach, beside the oracle rows of
+  known error.
+- `centre_latent`: `centre` steering by that estimate instead of the observed target: nothing privileged at run
+  time (the vision controller).
 `--perturb-kp-ulp K` moves every OSC gain K float32 ulps up at every episode start (nothing else changes):
 how many outcomes a last-bit difference flips (the Intel / AMD question of issue 40).
 `--oracle-lateral-noise-mm SIGMA`: the oracle knows the lateral error only to within a per-episode N(0, SIGMA^2) bias
@@ -49,12 +57,15 @@ from ..assets_usd.dimensions import (BOLT_CORE_RADIUS, BOLT_TIP_HEIGHT, GEAR_BAS
                                      THREAD_NUT_RADIUS, THREAD_PITCH)
 
 __all__ = ["CATEGORIES", "CeilingGeometry", "CEILING_GEOMETRY", "classify", "SEAT_HAIR", "REST_BAND", "BLOWN_OFFSET",
-           "DESCENT", "DESCENT_STEPS", "PRESS_MIN", "CONTROLLERS", "pushed_prior", "main"]
+           "DESCENT", "DESCENT_STEPS", "PRESS_MIN", "CONTROLLERS", "LATENT_CONTROLLERS", "latent_lateral", "pushed_prior",
+           "main"]
 
 CATEGORIES = ("success", "seated_then_lost", "seated_but_test_missed", "tilted_or_slipped_in_grasp",
               "time_out_inserting", "held_above_seat", "jammed_in_hole", "jammed_on_chamfer", "time_out_searching",
               "other")
-CONTROLLERS = ("scripted", "oracle", "oracle28", "prior", "prior_push", "search", "centre", "centre_search")
+CONTROLLERS = ("scripted", "oracle", "oracle28", "prior", "prior_push", "search", "centre", "centre_search",
+               "oracle_latent", "centre_latent")
+LATENT_CONTROLLERS = ("oracle_latent", "centre_latent")  # need the camera, the quick VAE and its probe
 
 # A seated part the success test misses "by a hair": MuJoCo's soft contact lets a part sink or stand off by up to
 # ~0.2 mm (reference/peg_grip_cpu_facts.md: wall and bottom penetration <= 0.21 mm), so a part within 0.25 mm of
@@ -365,9 +376,26 @@ def build(task: str, num_envs: int, cache_dir: str, seed: int = 0):
     return env, tables, demos
 
 
-def make_controller(name: str, env, tables, task: str, seed: int = 0, oracle_lateral_noise_mm: float = 0.0):
+def latent_lateral(env, task: str, cache_dir: str):
+    """The camera's estimate of the lateral error (envs.camera_latent.LatentLateral) and what it came from: the quick
+    preset's VAE of `task` and its near-hole probe (prepare.vision.load_or_make_probe), made on first use as a vision
+    run with --vision-probe-obs makes them: the same estimate that option gives the policy."""
+    from ..envs.camera_latent import LatentLateral
+    from ..prepare.vision import VISION_PRESETS, load_or_make_encoder, load_or_make_probe
+
+    preset = VISION_PRESETS["quick"]
+    encoder, info = load_or_make_encoder(task, preset, cache_dir, "cpu")
+    probe, path, record = load_or_make_probe(task, preset, cache_dir, encoder)
+    return LatentLateral(env, encoder, probe), {**info, "probe": str(path), **record}
+
+
+def make_controller(name: str, env, tables, task: str, seed: int = 0, oracle_lateral_noise_mm: float = 0.0,
+                    lateral_estimate=None):
     from ..envs.evaluation import KMPCentrePolicy, KMPOraclePolicy, KMPPriorPolicy, KMPSearchPolicy, ScriptedPolicy
     from ..envs.kgrl_action import KGRLActionPath
+
+    if name in LATENT_CONTROLLERS and lateral_estimate is None:
+        raise ValueError(f"controller {name!r} needs lateral_estimate (latent_lateral)")
 
     if name == "scripted":
         return ScriptedPolicy(seed=seed)
@@ -377,17 +405,19 @@ def make_controller(name: str, env, tables, task: str, seed: int = 0, oracle_lat
         return KMPSearchPolicy.with_floors(tables, env)
     if name == "oracle28":  # issue 28's, as it was measured (its blocked test scaled per task)
         return KMPOraclePolicy.with_floors(tables, env, oracle_params(task))
-    if name == "oracle":  # the ceiling's: settles at the search's 0.3 mm drop, then presses the part ORACLE_PUSH_MM
-        # below its seat (privileged z too)
+    if name in ("oracle", "oracle_latent"):  # the ceiling's: settles at the search's 0.3 mm drop, then presses the
+        # part ORACLE_PUSH_MM below its seat (privileged z too)
         g = CEILING_GEOMETRY[task]
         pitch = 2 * math.pi / GEAR_TEETH["medium"] if task == "GearMesh" else None  # the teeth decide the yaw
         return KMPOraclePolicy.with_floors(tables, env, replace(oracle_params(task), settle_mm=0.3),
                                            push_mm=ORACLE_PUSH_MM, inside_mm=1e3 * (g.rest_height - g.entry_depth),
                                            mesh_pitch=pitch, lateral_noise_mm=oracle_lateral_noise_mm,
-                                           noise_seed=seed)
-    if name in ("centre", "centre_search"):  # blind: the oracle's settle, x, y from the observation; pressed blind
+                                           noise_seed=seed, lateral_estimate=lateral_estimate if name == "oracle_latent" else None)
+    if name in ("centre", "centre_search", "centre_latent"):  # the oracle's settle, x, y from the observation (or
+        # the camera's estimate); pressed blind
         return KMPCentrePolicy.with_floors(tables, env, replace(oracle_params(task), settle_mm=0.3),
-                                           push_mm=ORACLE_PUSH_MM, spiral=name == "centre_search")
+                                           push_mm=ORACLE_PUSH_MM, spiral=name == "centre_search",
+                                           lateral_estimate=lateral_estimate if name == "centre_latent" else None)
     if name == "prior_push":
         return KMPPriorPolicy(KGRLActionPath(pushed_prior(tables, PRIOR_PUSH_MM * 1e-3), env))
     raise ValueError(f"controller must be one of {CONTROLLERS}, got {name!r}")
@@ -468,12 +498,23 @@ def main(argv=None) -> int:
                              "entry_depth": 1e3 * CEILING_GEOMETRY[args.task].entry_depth,
                              "seat_hair": 1e3 * SEAT_HAIR, "rest_band": 1e3 * REST_BAND},
            "controllers": {}}
+    estimate = None
+    if set(args.controllers) & set(LATENT_CONTROLLERS):
+        estimate, out["latent"] = latent_lateral(env, args.task, args.cache_dir)
+        print(f"{args.task}: the camera's lateral estimate, probe held-out RMSE {out['latent']['held_out_rmse_mm']} mm "
+              f"(image axes, {out['latent']['held_out_frames']} frames)", flush=True)
     for name in args.controllers:
         print(f"{args.task} {name}", flush=True)
-        policy = make_controller(name, env, tables, args.task, args.seed, args.oracle_lateral_noise_mm)
+        policy = make_controller(name, env, tables, args.task, args.seed, args.oracle_lateral_noise_mm,
+                                 estimate if name in LATENT_CONTROLLERS else None)
+        if estimate is not None:
+            estimate.sq.zero_()
+            estimate.count.zero_()
         records, wall = run_controller(env, policy, args.episodes_per_world, args.eval_seed, args.task,
                                        args.perturb_kp_ulp)
         out["controllers"][name] = {**summary(records), "wall_s": round(wall, 1), "records": records}
+        if name in LATENT_CONTROLLERS:  # how good the estimate was on the near-hole frames of these episodes (world)
+            out["controllers"][name]["estimate_rmse_mm"] = estimate.rmse_mm()
         if name == "oracle":
             import dataclasses
 

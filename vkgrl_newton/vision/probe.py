@@ -25,11 +25,12 @@ mean, below 0 worse. A yaw target is whatever columns the caller passes (the ang
 from __future__ import annotations
 
 import numpy as np
+import torch
 from sklearn.linear_model import LinearRegression, Ridge
 from sklearn.metrics import r2_score
 
 __all__ = ["linear_probe", "near_hole_mask", "relative_in_image", "part_pixel_features", "regression_rmse",
-           "regression_errors", "episode_bootstrap_se", "near_hole_probe", "NEAR_HOLE_XY", "NEAR_HOLE_HEIGHT", "PROBE_AXES"]
+           "regression_errors", "episode_bootstrap_se", "NearHoleRegressor", "ProbeMLP", "lateral_from_image", "near_hole_probe", "NEAR_HOLE_XY", "NEAR_HOLE_HEIGHT", "PROBE_AXES"]
 
 NEAR_HOLE_XY = 0.01  # m: the held part within this horizontal distance of the fixed tip ...
 NEAR_HOLE_HEIGHT = 0.02  # m: ... and less than this above it (in contact or inside: below 0)
@@ -143,16 +144,22 @@ def regression_errors(x_train, y_train, x_val, y_val, model: str = "linear", see
     set's pixel measurements (PegInsert, 128 px, 1 401 training frames) against Adam with early
     stopping, which stopped short (RMSE 2x the affine map's): the penalty is a fixed setting,
     never tuned on the frames a probe is scored on. Computed in float64."""
-    from sklearn.compose import TransformedTargetRegressor
-    from sklearn.neural_network import MLPRegressor
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import StandardScaler
-
     xt, yt = _as_2d(x_train, "x_train"), _as_2d(y_train, "y_train")
     xv, yv = _as_2d(x_val, "x_val"), _as_2d(y_val, "y_val")
     if xt.shape[0] != yt.shape[0] or xv.shape[0] != yv.shape[0] or xt.shape[1] != xv.shape[1]:
         raise ValueError(f"regression_rmse: shapes do not fit: x_train {xt.shape}, y_train {yt.shape}, "
                          f"x_val {xv.shape}, y_val {yv.shape}")
+    reg = _fit_regressor(xt, yt, model, seed)
+    return _predict(reg, xv).reshape(yv.shape) - yv
+
+
+def _fit_regressor(xt: np.ndarray, yt: np.ndarray, model: str, seed: int):
+    """regression_errors' model (its docstring), fitted on float64 (n, d) inputs and (n, k) targets."""
+    from sklearn.compose import TransformedTargetRegressor
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
     if model == "linear":
         reg = make_pipeline(StandardScaler(), Ridge(alpha=1e-6 * xt.shape[0]))
     elif model == "mlp":
@@ -172,8 +179,94 @@ def regression_errors(x_train, y_train, x_val, y_val, model: str = "linear", see
     with warnings.catch_warnings(), threadpool_limits(1):
         warnings.simplefilter("ignore", ConvergenceWarning)  # max_iter is a budget here, not an error
         reg.fit(xt, yt if yt.shape[1] > 1 else yt[:, 0])
-        pred = np.asarray(reg.predict(xv), dtype=np.float64).reshape(yv.shape)
-    return pred - yv
+    return reg
+
+
+def _predict(reg, x: np.ndarray) -> np.ndarray:
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        return np.asarray(reg.predict(x), dtype=np.float64)
+
+
+class NearHoleRegressor:
+    """The near-hole probe as an estimator a controller can use: fitted on the near-hole frames of an image set
+    (`near_hole_mask`), latent (n, d_z) -> the fixed tip minus the held part's origin in the image's frame (n, 3)
+    float64, m (`relative_in_image`), by `regression_errors`' model. Privileged labels train it, as a pose
+    estimator is trained in simulation; at run time it reads only the latent."""
+
+    def __init__(self, latent, geometry, model: str = "mlp", seed: int = 0) -> None:
+        z, g = _as_2d(latent, "latent"), np.asarray(geometry, np.float64)
+        if g.ndim != 2 or g.shape[0] != z.shape[0] or g.shape[1] != 13:
+            raise ValueError(f"NearHoleRegressor: geometry must be (n, 13) beside latent {z.shape}, got {g.shape}")
+        near = near_hole_mask(g)
+        self.model, self.num_fit, self.latent_dim = model, int(near.sum()), z.shape[1]
+        self._reg = _fit_regressor(z[near], relative_in_image(g[near]), model, seed)
+
+    def __call__(self, latent) -> np.ndarray:
+        z = _as_2d(latent, "latent")
+        if z.shape[1] != self.latent_dim:
+            raise ValueError(f"NearHoleRegressor: latent has {z.shape[1]} columns, it was fitted on {self.latent_dim}")
+        return _predict(self._reg, z).reshape(-1, 3)
+
+    def state(self) -> dict:
+        """The fitted map as plain float64 arrays (`ProbeMLP`'s): standardize the input by x_mean, x_scale, then
+        affine layers weights[i] (in, out), biases[i] with ReLU between them, then y * y_scale + y_mean."""
+        if self.model == "mlp":
+            pipe, ty = self._reg.regressor_, self._reg.transformer_
+            sx, mlp = pipe.steps[0][1], pipe.steps[1][1]
+            if mlp.activation != "relu" or mlp.out_activation_ != "identity":
+                raise ValueError(f"NearHoleRegressor: an MLP of {mlp.activation} / {mlp.out_activation_} units")
+            weights, biases = list(mlp.coefs_), list(mlp.intercepts_)
+            y_mean, y_scale = ty.mean_, ty.scale_
+        else:
+            sx, ridge = self._reg.steps[0][1], self._reg.steps[1][1]
+            weights, biases = [ridge.coef_.T], [np.asarray(ridge.intercept_)]
+            y_mean, y_scale = np.zeros(3), np.ones(3)
+        f64 = lambda a: np.asarray(a, np.float64).copy()  # noqa: E731
+        return {"model": self.model, "num_fit": self.num_fit, "x_mean": f64(sx.mean_), "x_scale": f64(sx.scale_),
+                "weights": [f64(w) for w in weights], "biases": [f64(b).reshape(-1) for b in biases],
+                "y_mean": f64(y_mean), "y_scale": f64(y_scale)}
+
+
+class ProbeMLP(torch.nn.Module):
+    """`NearHoleRegressor.state()` in torch, to run beside the encoder on the env's device (no host round trip):
+    latent (E, d_z) -> the fixed tip minus the held part's origin in the image's frame (E, 3), m, in the latent's
+    dtype. The policy's input with --vision-probe-obs (envs.camera_latent) and the ceiling's camera estimate."""
+
+    def __init__(self, state: dict) -> None:
+        super().__init__()
+        t = lambda a: torch.as_tensor(np.asarray(a, np.float64))  # noqa: E731
+        for name in ("x_mean", "x_scale", "y_mean", "y_scale"):
+            self.register_buffer(name, t(state[name]))
+        if len(state["weights"]) != len(state["biases"]) or not state["weights"]:
+            raise ValueError("ProbeMLP: weights and biases must be lists of the same, non-zero length")
+        self.layers = torch.nn.ModuleList()
+        for w, b in zip(state["weights"], state["biases"]):
+            lin = torch.nn.Linear(*np.shape(w), dtype=torch.float64)
+            with torch.no_grad():
+                lin.weight.copy_(t(w).T)
+                lin.bias.copy_(t(b))
+            self.layers.append(lin)
+        self.requires_grad_(False)
+        self.latent_dim, self.model = int(np.shape(state["weights"][0])[0]), str(state.get("model", "mlp"))
+
+    @torch.no_grad()
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        x = (z.to(self.x_mean.dtype) - self.x_mean) / self.x_scale
+        for i, layer in enumerate(self.layers):
+            x = layer(x)
+            if i + 1 < len(self.layers):
+                x = torch.relu(x)
+        return (x * self.y_scale + self.y_mean).to(z.dtype)
+
+
+def lateral_from_image(d_image: torch.Tensor, optical_quat_w: torch.Tensor) -> torch.Tensor:
+    """(E, 2) world x, y of the held part's origin minus the fixed tip, from the probe's image-frame vector (fixed tip
+    minus held, (E, 3)) and the optical frame's orientation in the world ((E, 4) xyzw): -(R d)_xy."""
+    from ..rotations import quat_rotate
+
+    return -quat_rotate(optical_quat_w.to(d_image.dtype), d_image)[:, :2]
 
 
 def episode_bootstrap_se(errors: np.ndarray, episodes: np.ndarray, draws: int = 1000, seed: int = 0) -> np.ndarray:
