@@ -41,6 +41,10 @@ ROWS = [  # (label, file, controller key, what it knows of the lateral error)
     ("oracle, sigma 0.5 mm", HERE / "PegInsert_sigma0.5.json", "oracle", "true error + N(0, 0.5^2) bias per axis"),
     ("oracle, sigma 0.25 mm", HERE / "PegInsert_sigma0.25.json", "oracle", "true error + N(0, 0.25^2) bias per axis"),
     ("oracle, sigma 0", CEIL / "PegInsert_oracle.json", "oracle", "the true error"),
+    ("oracle_latent", HERE / "PegInsert_latent.json", "oracle_latent",
+     "the camera: the VAE latent through the near-hole probe (z privileged)"),
+    ("centre_latent", HERE / "PegInsert_latent.json", "centre_latent",
+     "the camera, nothing privileged: centre steering by the probe's estimate"),
 ]
 
 
@@ -85,16 +89,22 @@ def learned() -> dict[str, list[float]]:
         out[label] = [json.loads(f.read_text())["success_rate"] for f in runs]
     st = json.loads((res / "vision_kgrl_28e/report/stats.json").read_text())["prior_gain"][0]
     out["vision_kgrl (issue 28's code)"] = [st["prior_success"] + g for g in st["seed_gains"]]
+    for label, d in (("vision_kgrl (today's code)", res / "vision_probe_40/report/runs/PegInsert_factory_4d_vision_kgrl+reach_keep_prior"),
+                     ("vision_kgrl --vision-probe-obs", res / "vision_probe_40/report/runs/PegInsert_factory_4d_vision_kgrl+vision_probe")):
+        runs = sorted(d.glob("seed*/metrics.json"), key=lambda f: int(f.parent.name[4:]))
+        if len(runs) >= 2:  # (the study's seeds as they come in; the row says how many)
+            out[label + ("" if len(runs) == 5 else f", seeds {', '.join(f.parent.name[4:] for f in runs)}")] = \
+                [json.loads(f.read_text())["success_rate"] for f in runs]
     return out
 
 
 def against() -> None:
     print("\n| learned (seeds 0-4) | per seed | minus centre (t) | minus search (t) | minus centre_search (t) | "
-          "minus oracle sigma 1.0 (t) | minus oracle sigma 0.5 (t) |")
-    print("|---|---|---|---|---|---|---|")
+          "minus oracle sigma 1.0 (t) | minus oracle sigma 0.5 (t) | minus centre_latent (t) |")
+    print("|---|---|---|---|---|---|---|---|")
     rows = {label: (path, key) for label, path, key, _ in ROWS}
     refs = []
-    for label in ("centre", "search", "centre_search", "oracle, sigma 1.0 mm", "oracle, sigma 0.5 mm"):
+    for label in ("centre", "search", "centre_search", "oracle, sigma 1.0 mm", "oracle, sigma 0.5 mm", "centre_latent"):
         path, key = rows[label]
         refs.append(float(np.mean([r["success"] for r in json.loads(path.read_text())["controllers"][key]["records"]]))
                     if path.exists() else None)
