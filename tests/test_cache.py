@@ -71,3 +71,23 @@ def test_a_changed_file_is_named_with_both_hashes(tmp_path):
     f.unlink()
     with pytest.raises(FileNotFoundError):
         check_unchanged(f, recorded, "demos")
+
+
+def test_a_runs_near_hole_probe_is_checked_like_its_vae(tmp_path):
+    """--vision-probe-obs runs record their probe by sha256: check_run_files refuses a changed or missing one, and
+    without_file_records leaves the probe's records out of the fields a resume compares."""
+    from vkgrl_newton.cache import check_run_files, file_sha256
+    from vkgrl_newton.run.resolve import without_file_records
+
+    probe = tmp_path / "near_hole_probe_mlp_seed0.npz"
+    probe.write_bytes(b"weights")
+    meta = {"vision": {"vae": "v.pt", "latent_dim": 16, "probe": str(probe), "probe_sha256": file_sha256(probe)}}
+    check_run_files(meta, probe=probe)  # unchanged
+    check_run_files({"vision": {"vae": "v.pt"}}, probe=probe)  # a run without a probe record: nothing to check
+    probe.write_bytes(b"other weights")
+    with pytest.raises(ValueError, match="the near-hole probe .* has changed"):
+        check_run_files(meta, probe=probe)
+    probe.unlink()
+    with pytest.raises(FileNotFoundError, match="the near-hole probe"):
+        check_run_files(meta, probe=probe)
+    assert without_file_records(meta)["vision"] == {"vae": "v.pt", "latent_dim": 16}

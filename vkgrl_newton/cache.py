@@ -68,11 +68,13 @@ def check_unchanged(path, recorded_sha256: str, what: str) -> None:
                          f"now {now}")
 
 
-def check_run_files(meta: dict, demos=None, vae=None) -> None:
-    """The files a run's meta records by sha256 (its KMP prior's demonstrations, its VAE) are the
-    given ones, unchanged; a file not given (None) is not checked. Errors as `check_unchanged`."""
+def check_run_files(meta: dict, demos=None, vae=None, probe=None) -> None:
+    """The files a run's meta records by sha256 (its KMP prior's demonstrations, its VAE, its near-hole
+    probe) are the given ones, unchanged; a file not given (None) is not checked. Errors as `check_unchanged`."""
     if "prior" in meta and demos is not None:
         check_unchanged(demos, meta["prior"]["demos_sha256"], "the KMP prior's demonstrations")
     vision = meta.get("vision", {})
     if "vae_sha256" in vision and vae is not None:
         check_unchanged(vae, vision["vae_sha256"], "the VAE")
+    if "probe_sha256" in vision and probe is not None:
+        check_unchanged(probe, vision["probe_sha256"], "the near-hole probe")

@@ -176,23 +176,24 @@ _PROBE_ARRAYS = ("x_mean", "x_scale", "y_mean", "y_scale", "num_fit", "held_out_
 
 
 def load_or_make_probe(task: str, preset: VisionPreset, cache_dir, encoder: FrozenEncoder, num_envs: int = 16,
-                       log=print):
+                       log=print, path=None):
     """The near-hole probe of the preset's VAE (--vision-probe-obs; tools/ceiling.py's camera estimate): an MLP
     (vision.probe.NearHoleRegressor) from the frozen encoder's latent to the fixed tip minus the held part in the
     image's frame, fitted on every near-hole frame of the VAE's own image set with the set's privileged geometry,
     as a pose estimator is trained in simulation. Made on first use under its cache entry's lock (seconds) and
     written atomically; returns (vision.probe.ProbeMLP on the CPU, its path, {"num_fit", "held_out_rmse_mm",
     "held_out_frames"}: the same model fitted on the set's training episodes and scored on its validation ones,
-    image axes x, y, z)."""
+    image axes x, y, z). `path`: a probe file to load as it is (a run's recorded one), never fitted."""
     import numpy as np
 
     from .._io import atomic_savez, load_npz
     from ..vision.dataset import ImageSet
     from ..vision.probe import NearHoleRegressor, ProbeMLP, near_hole_mask, relative_in_image
 
-    path = default_probe_path(cache_dir, task, preset, num_envs)
+    given = path is not None
+    path = Path(path) if given else default_probe_path(cache_dir, task, preset, num_envs)
     with entry_lock(path, log=log, what=f"the {task} near-hole probe"):
-        if not path.is_file():
+        if not path.is_file() and not given:
             images = ImageSet(default_image_dir(cache_dir, preset.collect_config(task, num_envs)),
                               resolution=preset.resolution, task=task)
             if not images.has_geometry:

@@ -71,6 +71,7 @@ class RunConfig:
     # the vision methods: the near-hole probe's estimate of the held part over the hole (world x, y, from the latent;
     # prepare.vision.load_or_make_probe) appended to the latent (envs.camera_latent)
     vision_probe_obs: bool = False
+    probe: Path | None = None  # its probe file: a resumed or evaluated run's recorded one (None: the cache's)
     ppo: dict | None = None  # rsl-rl's runner configuration (ppo methods)
     # the prior (kmp methods): your demonstrations or the scripted ones, the KMP's reference and
     # parameters (None: kmp.prior's defaults; a resumed run's own), the action path's reach floors (mm)
@@ -147,6 +148,14 @@ class RunConfig:
         if self.vae is not None:
             return Path(self.vae)
         return default_vae_dir(self.cache_dir, self.task, VISION_PRESETS[self.preset]) / "vae.pt"
+
+    def probe_path(self) -> Path:
+        """The run's near-hole probe (vision_probe_obs): the recorded one, or the cache's for its VAE (made when
+        missing: prepare.vision.load_or_make_probe)."""
+        from ..prepare.vision import VISION_PRESETS, default_probe_path
+
+        return Path(self.probe) if self.probe is not None else default_probe_path(self.cache_dir, self.task,
+                                                                                 VISION_PRESETS[self.preset])
 
     def meta(self) -> dict:
         """What identifies a run; a resumed run must match it field by field. The learner's configuration:

@@ -43,9 +43,9 @@ def checkpoint_config(args, payload: dict, given: set[str]) -> None:
         args.demos = Path(meta["prior"]["demos"])
     if "vision" in meta:  # a vision run: the same frozen encoder it trained with
         try:
-            check_run_files(meta, vae=meta["vision"]["vae"])
+            check_run_files(meta, vae=meta["vision"]["vae"], probe=meta["vision"].get("probe"))
         except (FileNotFoundError, ValueError) as e:
-            raise ConfigError(f"--checkpoint: the run's VAE: {e}") from None
+            raise ConfigError(f"--checkpoint: the run's vision files: {e}") from None
 
 
 def evaluation_cpu_matmul(args, meta: dict) -> str | None:
@@ -102,6 +102,7 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      vae=Path(meta["vision"]["vae"]) if "vision" in meta else None,
                      kgrl_time_action=meta.get("kgrl_time_action", 0), tcp_velocity_obs=meta.get("tcp_velocity_obs", False),
                      force_obs=meta.get("force_obs", False), vision_probe_obs=meta.get("vision_probe_obs", False),
+                     probe=Path(meta["vision"]["probe"]) if "probe" in meta.get("vision", {}) else None,
                      sac=None, ppo=meta.get("ppo"), device=args.device, cache_dir=args.cache_dir, progress=True,
                      eager_physics=bool(args.eager_physics))
 

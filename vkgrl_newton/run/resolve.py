@@ -48,6 +48,7 @@ def resolve(parser, argv, torch_threads: int | None = None) -> Resolved | Done:
     """torch_threads: the intra-op threads the run will train with (run.py: 1), for the CPU matmul choice."""
     ns = parser.parse_args(argv)
     ns.torch_threads = torch_threads
+    ns.probe = None  # a resumed run's recorded near-hole probe (_from_checkpoint)
     if ns.vision_probe_obs and ns.vae is not None:  # (before a resume fills ns.vae from the run's own record)
         raise ConfigError("--vision-probe-obs takes the cached VAE of the task and preset: its probe is fitted on that "
                           "VAE's own image set, which a given --vae does not come with; leave out --vae")
@@ -113,10 +114,12 @@ def _from_checkpoint(ns, given: set[str]) -> dict | Done:
         ns.geometry = meta.get("geometry", "primitives")
     if "vae" not in given and "vision" in meta:
         ns.vae = Path(meta["vision"]["vae"])
+    if "probe" in meta.get("vision", {}):  # (no option names it: the run's own, always)
+        ns.probe = Path(meta["vision"]["probe"])
     if "demos" not in given and "prior" in meta:
         ns.demos = Path(meta["prior"]["demos"])
     try:  # a run continues from exactly what it learned from
-        check_run_files(meta, demos=ns.demos, vae=ns.vae)
+        check_run_files(meta, demos=ns.demos, vae=ns.vae, probe=ns.probe)
     except (FileNotFoundError, ValueError) as e:
         raise ConfigError(f"--resume: {e}") from None
     if (done := _finished(ns, payload, given)) is not None:
@@ -331,7 +334,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
         privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
         tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs), obs_history=int(ns.obs_history or 0),
-        vision_probe_obs=bool(ns.vision_probe_obs),
+        vision_probe_obs=bool(ns.vision_probe_obs), probe=ns.probe,
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,
         sac=ns.sac_config, ppo=ns.ppo_cfg, demos=ns.demos, num_demos=ns.num_demos, kmp_reference=reference,
         kmp_params=kmp_params, vae=ns.vae, total_steps=ns.total_steps,
@@ -386,7 +389,7 @@ def without_file_records(meta: dict) -> dict:
     meta = dict(meta)
     meta.pop("prior", None)
     if "vision" in meta:
-        meta["vision"] = {k: v for k, v in meta["vision"].items() if k != "vae_sha256"}
+        meta["vision"] = {k: v for k, v in meta["vision"].items() if k not in ("vae_sha256", "probe", "probe_sha256")}
     return meta
 
 

@@ -123,6 +123,9 @@ def run_meta_with_files(cfg: RunConfig, built: Built) -> dict:
         from ..cache import file_sha256
 
         meta["vision"]["vae_sha256"] = file_sha256(meta["vision"]["vae"])
+        if cfg.vision_probe_obs:  # the probe it read the latent through (made by build_env)
+            meta["vision"]["probe"] = str(cfg.probe_path())
+            meta["vision"]["probe_sha256"] = file_sha256(cfg.probe_path())
     return meta
 
 
