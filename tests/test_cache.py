@@ -91,3 +91,30 @@ def test_a_runs_near_hole_probe_is_checked_like_its_vae(tmp_path):
     with pytest.raises(FileNotFoundError, match="the near-hole probe"):
         check_run_files(meta, probe=probe)
     assert without_file_records(meta)["vision"] == {"vae": "v.pt", "latent_dim": 16}
+
+
+def test_a_probe_run_records_its_probe_and_a_damaged_probe_is_one_line(tmp_path):
+    """run_meta_with_files records the probe the run read (path and sha256) beside its VAE's; a damaged probe file
+    given to load_or_make_probe is a ValueError naming it, never fitted over."""
+    from types import SimpleNamespace
+
+    from vkgrl_newton.cache import file_sha256
+    from vkgrl_newton.agents.sac_config import SACConfig
+    from vkgrl_newton.prepare.vision import VISION_PRESETS, load_or_make_probe
+    from vkgrl_newton.run.config import RunConfig
+    from vkgrl_newton.run.train import run_meta_with_files
+
+    vae, probe = tmp_path / "vae.pt", tmp_path / "near_hole_probe_mlp_seed0.npz"
+    vae.write_bytes(b"vae")
+    probe.write_bytes(b"not an npz")
+    cfg = RunConfig(method="vision_kgrl", vae=vae, vision_probe_obs=True, probe=probe, cache_dir=tmp_path,
+                    sac=SACConfig())
+    meta = run_meta_with_files(cfg, SimpleNamespace(action_path=None, encoder=object()))
+    assert meta["vision_probe_obs"] and meta["vision"]["probe"] == str(probe)
+    assert meta["vision"]["probe_sha256"] == file_sha256(probe) and meta["vision"]["vae_sha256"] == file_sha256(vae)
+    plain = run_meta_with_files(RunConfig(method="vision_kgrl", vae=vae, cache_dir=tmp_path, sac=SACConfig()),
+                                SimpleNamespace(action_path=None, encoder=object()))
+    assert "probe" not in plain["vision"] and "vision_probe_obs" not in plain
+    with pytest.raises(ValueError, match="near_hole_probe_mlp_seed0.npz"):
+        load_or_make_probe("PegInsert", VISION_PRESETS["quick"], tmp_path, encoder=None, path=probe, log=lambda *a: None)
+    assert probe.read_bytes() == b"not an npz"  # a given file is never refitted or replaced

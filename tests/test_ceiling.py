@@ -385,6 +385,14 @@ def test_the_latent_lateral_estimate_turns_the_probe_into_the_world_and_scores_n
     d_image = 1e-3 * rng.normal(size=(E, 3))
     out = lateral_from_image(torch.from_numpy(d_image), torch.from_numpy(q)).numpy()
     np.testing.assert_allclose(out, -Rotation.from_quat(q).apply(d_image)[:, :2], atol=1e-15)
+    # the probe's own target, relative_in_image (R^T (tip - held)), comes back as the held part minus the tip, x, y
+    from vkgrl_newton.vision.probe import relative_in_image
+
+    g = np.zeros((E, 13))
+    g[:, 0:6] = rng.normal(size=(E, 6))
+    g[:, 9:13] = q
+    back = lateral_from_image(torch.from_numpy(relative_in_image(g)), torch.from_numpy(q)).numpy()
+    np.testing.assert_allclose(back, g[:, 0:2] - g[:, 3:5], atol=1e-12)
     held = rng.normal(size=(E, 3))
     tip = held.copy()
     tip[:, :2] -= 1e-3 * np.array([[1, 0], [0, 2], [3, 0], [0, 0], [40, 0]])  # world 4 40 mm away: not near

@@ -213,7 +213,7 @@ def load_or_make_probe(task: str, preset: VisionPreset, cache_dir, encoder: Froz
             atomic_savez(path, False, num_layers=np.array(len(state["weights"])), num_fit=np.array(state["num_fit"]),
                          held_out_rmse_mm=1e3 * np.sqrt((err ** 2).mean(axis=0)),
                          held_out_frames=np.array(int(near_val.sum())), **arrays)
-    data = load_npz(path, "the near-hole probe", _PROBE_ARRAYS)
+    data = load_npz(path, "near-hole probe", _PROBE_ARRAYS)
     k = int(data["num_layers"])
     try:
         probe = ProbeMLP({"x_mean": data["x_mean"], "x_scale": data["x_scale"], "y_mean": data["y_mean"],

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .config import RunConfig
 
-__all__ = ["Built", "build", "build_encoder", "build_env", "build_action_path", "build_agent", "build_rollout_policy"]
+__all__ = ["Built", "build", "build_encoder", "build_env", "build_probe", "build_action_path", "build_agent", "build_rollout_policy"]
 
 
 @dataclass
@@ -45,8 +45,9 @@ def build_encoder(cfg: RunConfig, log=print):
     return encoder
 
 
-def build_env(cfg: RunConfig, encoder=None, solver: str | None = None):
-    """The batched AssemblyEnv of the configuration, with the encoder's camera latent attached."""
+def build_env(cfg: RunConfig, encoder=None, solver: str | None = None, probe=None):
+    """The batched AssemblyEnv of the configuration, with the encoder's camera latent attached (and with
+    vision_probe_obs the near-hole probe: `probe`, or build_probe's when None)."""
     from ..envs.assembly_env import AssemblyEnv, EnvConfig
     from ..sim.scene import SimConfig
 
@@ -56,7 +57,7 @@ def build_env(cfg: RunConfig, encoder=None, solver: str | None = None):
                                 vision_latent_dim=cfg.vision_width if encoder is not None else 0,
                                 sim=sim, graph=not cfg.eager_physics, privileged_obs=cfg.privileged_critic,
                                 tcp_velocity_obs=cfg.tcp_velocity_obs, force_obs=cfg.force_obs))
-    attach_encoder(env, encoder, build_probe(cfg, encoder))
+    attach_encoder(env, encoder, probe if probe is not None else build_probe(cfg, encoder))
     return env
 
 

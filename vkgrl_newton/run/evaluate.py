@@ -148,14 +148,18 @@ def evaluate_policy(args, payload: dict | None) -> dict:
     """Build (run.build), evaluate on the eval seed's episodes, and return evaluate.py's result dict
     (the frames, when --video, under "_frames")."""
     from ..envs.evaluation import KMPSearchPolicy, evaluate
-    from .build import build_action_path, build_encoder, build_env, prior_tables
+    from .build import build_action_path, build_encoder, build_env, build_probe, prior_tables
 
     cfg = evaluation_config(args, payload)
     try:
         encoder = build_encoder(cfg)
     except (FileNotFoundError, ValueError) as e:
         raise ConfigError(f"--checkpoint: the run's VAE: {e}") from None
-    env = build_env(cfg, encoder, solver=args.solver)
+    try:
+        probe = build_probe(cfg, encoder)
+    except (FileNotFoundError, ValueError) as e:
+        raise ConfigError(f"--checkpoint: the run's near-hole probe: {e}") from None
+    env = build_env(cfg, encoder, solver=args.solver, probe=probe)
     search = payload is None and args.policy == "kmp_search"
     action_path = build_action_path(cfg, env)[0] if not search else None
     built = _Evaluated(env, action_path, prior_tables(cfg)[0] if search else None)

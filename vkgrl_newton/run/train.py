@@ -21,7 +21,7 @@ from .._io import atomic_write_text, strict_json
 from ..results.curves import CurveWriter
 from ..results.paired import cached_evaluation, format_gain, paired_gain, seed_evaluation, world_outcomes
 from ..signals import describe, exit_code, stop_line, where
-from .build import Built, build_action_path, build_agent, build_encoder, build_env, build_rollout_policy
+from .build import Built, build_action_path, build_agent, build_encoder, build_env, build_probe, build_rollout_policy
 from .config import RunConfig
 from .loops import Loop, ppo_loop, restore_rng, rng_state, sac_loop
 
@@ -100,10 +100,11 @@ def _build(cfg: RunConfig, log) -> Built | int:
     try:
         try:
             encoder = build_encoder(cfg, log)
+            probe = build_probe(cfg, encoder, log)  # (--vision-probe-obs; else None)
         except (FileExistsError, FileNotFoundError, ValueError) as e:
             print(f"train/run.py: the vision prerequisites: {e}", file=sys.stderr)
             return 2
-        env = build_env(cfg, encoder)
+        env = build_env(cfg, encoder, probe=probe)
         action_path, demos_path = build_action_path(cfg, env, log)
         agent = build_agent(cfg, env)
     except KeyboardInterrupt as e:  # the prepare phases say what they kept (signals.phase); nothing of the run yet
