@@ -38,21 +38,22 @@ class CameraLatent:
         # --vision-probe-obs: the near-hole probe (vision.probe.ProbeMLP) read off the latent and turned into the
         # world by the camera's pose, appended: (E, d_z + 2)
         self.probe = None if probe is None else probe.to(env.tdev)
-        self.width = encoder.latent_dim + (0 if probe is None else LATERAL_DIM)
 
     @torch.no_grad()
     def __call__(self, env) -> torch.Tensor:
-        images = self.camera.render_torch(env.state_0, *env.hand_pose())  # uint8 (E, R, R, 3) view
+        hand = env.hand_pose()  # (read once: the render and the probe's camera pose share it)
+        images = self.camera.render_torch(env.state_0, *hand)  # uint8 (E, R, R, 3) view
         z = torch.cat([self.encoder(images[i:i + self.batch]) for i in range(0, images.shape[0], self.batch)])
         if self.probe is None:
             return z  # on env.tdev, where the encoder is; timings: python -m vkgrl_newton.tools.bench_vision
-        return torch.cat([z, self.lateral(env, z)], -1)
+        return torch.cat([z, self.lateral(hand, z)], -1)
 
-    def lateral(self, env, z: torch.Tensor) -> torch.Tensor:
-        """(E, 2) the probe's estimate of the held part's origin minus the fixed tip, world x, y (m), from latent z."""
+    def lateral(self, hand, z: torch.Tensor) -> torch.Tensor:
+        """(E, 2) the probe's estimate of the held part's origin minus the fixed tip, world x, y (m), from latent z
+        and the hand's world pose `hand` (pos, quat xyzw) this image was taken from."""
         from ..vision.probe import lateral_from_image
 
-        q = self.camera.optical_poses_w(*env.hand_pose())[:, 3:]
+        q = self.camera.optical_poses_w(*hand)[:, 3:]
         return lateral_from_image(self.probe(z), q).to(z.dtype)
 
 
@@ -87,6 +88,10 @@ class LatentLateral:
         near = (torch.linalg.vector_norm(truth[:, :2], dim=-1) < NEAR_HOLE_XY) & (truth[:, 2] < NEAR_HOLE_HEIGHT)
         self.sq += (((estimate - truth[:, :2]) ** 2) * near.unsqueeze(-1)).sum(0)
         self.count += near.sum()
+
+    def reset_score(self) -> None:
+        self.sq.zero_()
+        self.count.zero_()
 
     def rmse_mm(self) -> dict:
         """{"x", "y": RMSE in mm over the near-hole frames scored (None before any), "frames": their count}."""

@@ -508,8 +508,7 @@ def main(argv=None) -> int:
         policy = make_controller(name, env, tables, args.task, args.seed, args.oracle_lateral_noise_mm,
                                  estimate if name in LATENT_CONTROLLERS else None)
         if estimate is not None:
-            estimate.sq.zero_()
-            estimate.count.zero_()
+            estimate.reset_score()  # (each controller's own episodes)
         records, wall = run_controller(env, policy, args.episodes_per_world, args.eval_seed, args.task,
                                        args.perturb_kp_ulp)
         out["controllers"][name] = {**summary(records), "wall_s": round(wall, 1), "records": records}

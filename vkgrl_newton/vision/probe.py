@@ -249,7 +249,7 @@ class ProbeMLP(torch.nn.Module):
                 lin.bias.copy_(t(b))
             self.layers.append(lin)
         self.requires_grad_(False)
-        self.latent_dim, self.model = int(np.shape(state["weights"][0])[0]), str(state.get("model", "mlp"))
+        self.latent_dim = int(np.shape(state["weights"][0])[0])
 
     @torch.no_grad()
     def forward(self, z: torch.Tensor) -> torch.Tensor:
