@@ -687,12 +687,7 @@ class AssemblyEnv(VecEnv):
         if self.cfg.tcp_velocity_obs:
             parts += [self.tcp_linvel_w, self.tcp_angvel_w]
         if self.cfg.vision_latent_dim:
-            if self.vision_source is not None and self._latent_version != self._state_version:
-                self.physics._tick(None)  # profiled (throughput's split): the camera and encoder as "vision"
-                self.set_vision_latent(self.vision_source(self))
-                self.physics._tick("vision")
-                self._latent_version = self._state_version
-            parts.append(self.vision_latent)
+            parts.append(self.current_vision_latent())
         policy = torch.cat(parts, -1)
         if not self.cfg.privileged_obs:
             return TensorDict({"policy": policy}, batch_size=[self.num_envs])
@@ -722,6 +717,16 @@ class AssemblyEnv(VecEnv):
             raise ValueError("attach_vision needs EnvConfig.vision_latent_dim > 0 (the slot to fill)")
         self.vision_source = source
         self._latent_version = -1
+
+    def current_vision_latent(self) -> torch.Tensor:
+        """(E, vision_latent_dim) the vision slot for the state now: the attached source is called only when the
+        state changed since it was last read (the camera and the encoder run once a step however often it is read)."""
+        if self.vision_source is not None and self._latent_version != self._state_version:
+            self.physics._tick(None)  # profiled (throughput's split): the camera and encoder as "vision"
+            self.set_vision_latent(self.vision_source(self))
+            self.physics._tick("vision")
+            self._latent_version = self._state_version
+        return self.vision_latent
 
     def set_vision_latent(self, z: torch.Tensor) -> None:
         if z.shape != self.vision_latent.shape:

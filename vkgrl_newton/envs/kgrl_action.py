@@ -44,6 +44,7 @@ class KGRLActionPath:
             raise ValueError(f"time_steps={time_steps!r}: control steps per unit time action, an int in "
                              f"[0, {tables.n_steps}]")
         self.env = env
+        self.base = None  # set_base: the controller a = 0 stands for (None: the prior)
         self.env_action_dim = env.num_actions
         self.time_steps = time_steps
         self.action_dim = env.num_actions + (1 if time_steps else 0)  # the policy's: + a_t with the time action
@@ -92,8 +93,33 @@ class KGRLActionPath:
                          w["eta"], w["pos"], w["quat"])
         return self.tcp_pos_cmd_w, self.tcp_quat_cmd_w
 
+    def set_base(self, base) -> None:
+        """A controller under the policy's actions (--kgrl-base; envs.evaluation.base_controller), or None: the
+        prior. Each `step` adds the policy's actions to the base's `actions(env, inputs)` (a residual, as ResiP;
+        clipped to [-1, 1]), so that a = 0 is the base controller. The base keeps per-world state from step to step
+        (it restarts where an episode starts): `step` calls it exactly once a control step; `pose` never does."""
+        self.base = base
+
+    def with_base(self, actions: torch.Tensor) -> torch.Tensor:
+        """The actions `step` commands: the policy's plus the base's on the env's axes (the time action's a_t
+        stays the policy's), for the state now; the policy's as they are without a base."""
+        if self.base is None:
+            return actions
+        if actions.shape != (self.env.num_envs, self.action_dim):
+            raise ValueError(f"actions must have shape ({self.env.num_envs}, {self.action_dim}), got {tuple(actions.shape)}")
+        env = self.env
+        # the base reads what a policy observes: the TCP relative to the observed target frame (policy_observation's
+        # columns 1:4; column 0, time, it takes from the env's step counter)
+        inputs = torch.cat([torch.zeros_like(env.target_frame_pos_w[:, :1]),
+                            env.tcp_pose()[0] - env.target_frame_pos_w], -1)
+        out = actions.to(torch.float32).clone()
+        D = self.env_action_dim
+        out[:, :D] = (out[:, :D] + self.base.actions(env, inputs).to(out)).clamp(-1.0, 1.0)
+        return out
+
     def step(self, actions: torch.Tensor):
         """One env control step on the KGRL path; returns what `env.step` returns."""
+        actions = self.with_base(actions)
         out = self.env.step_pose(*self.pose(actions))
         if self.time_steps:
             a_t = actions[:, -1].clamp(-1.0, 1.0)

@@ -83,15 +83,19 @@ def attach_encoder(env, encoder, probe=None) -> None:
 
 def build_action_path(cfg: RunConfig, env, log=print):
     """(KGRLActionPath, demonstration path) of a kmp method: the prior (recorded and fitted on first
-    use, prepare.prior) with the configuration's reference, parameters and reach floors; (None, None)
+    use, prepare.prior) with the configuration's reference, parameters, reach floors and base; (None, None)
     for the delta-pose methods."""
     if not cfg.method_row.uses_kmp:
         return None, None
     from ..envs.kgrl_action import KGRLActionPath
 
+    from ..envs.evaluation import base_controller
+
     tables, demos_path = prior_tables(cfg, log)
-    return KGRLActionPath(tables, env, reach_floor=1e-3 * cfg.reach_floor_mm, reach_floor_z=1e-3 * cfg.reach_floor_z_mm,
-                          time_steps=cfg.kgrl_time_action, seat_press=1e-3 * cfg.seat_press_mm), demos_path
+    path = KGRLActionPath(tables, env, reach_floor=1e-3 * cfg.reach_floor_mm, reach_floor_z=1e-3 * cfg.reach_floor_z_mm,
+                          time_steps=cfg.kgrl_time_action, seat_press=1e-3 * cfg.seat_press_mm)
+    path.set_base(base_controller(cfg.kgrl_base, path, cfg.task))  # --kgrl-base (None: a = 0 is the prior)
+    return path, demos_path
 
 
 def prior_tables(cfg: RunConfig, log=print):

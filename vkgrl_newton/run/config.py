@@ -63,6 +63,9 @@ class RunConfig:
     # KMP time as an action (the kmp methods on SAC; the thesis's future work): a_t moves the prior's query
     # by 1 + round(k a_t) control steps per step (envs.kgrl_action); 0: none, the thesis
     kgrl_time_action: int = 0
+    # what a = 0 stands for (the kmp methods on SAC; envs.evaluation.BASE_CONTROLLERS): the KMP prior (the thesis), or
+    # a controller of the ceiling under the policy's actions (a residual): centre_search, centre_latent
+    kgrl_base: str = "prior"
     # the policy's extra inputs (envs.assembly_env.EnvConfig; deviations from eq. 5.5): the TCP's velocity,
     # and in Factory the smoothed contact force (Forge's observation has it)
     tcp_velocity_obs: bool = False
@@ -175,6 +178,8 @@ class RunConfig:
             meta["privileged_critic"] = True
         if self.kgrl_time_action:  # likewise
             meta["kgrl_time_action"] = self.kgrl_time_action
+        if self.kgrl_base != "prior":  # likewise
+            meta["kgrl_base"] = self.kgrl_base
         for name in ("tcp_velocity_obs", "force_obs", "vision_probe_obs"):  # likewise
             if getattr(self, name):
                 meta[name] = True
@@ -231,6 +236,14 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "action dimension a_t moves the prior's query by 1 + round(K a_t) control steps per step, so "
                          "that a blocked part can be lifted and tried again; the query's phase becomes a policy input. "
                          "a = 0 is still the prior. 0 (default): none, the thesis. A deviation; not yet ablated")
+    ap.add_argument("--kgrl-base", default=None, choices=("prior", "centre_search", "centre_latent"),
+                    help="kgrl, vision_kgrl: what a = 0 stands for. prior (default): the KMP prior, the thesis. Else a "
+                         "controller of the ceiling (docs/results/oracle_noise_40), nothing privileged, with the "
+                         "policy's actions added to its own (a residual, as ResiP): centre_search (blind: once "
+                         "blocked, the search's spiral about the observed target) or centre_latent (once blocked, "
+                         "steer by the camera's estimate of the part over the hole; needs --vision-probe-obs). The "
+                         "prior evaluated beside the policy is then that controller (a = 0). A deviation from eq. 4.36; "
+                         "not with --kgrl-time-action or --sac prior_rollouts_policy=search")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
                     help=f"{names(takes_recipe=True)}: the defaults under --sac and the reach floors: reach_keep_prior "
                          "(the quick preset's: beats the prior on paired episodes, docs/results.md) or base (the "

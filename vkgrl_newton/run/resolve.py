@@ -29,7 +29,7 @@ _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first
                   "nothing to resume; choose another directory, or delete this one to start it again")
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
 _RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic",
-                 "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history", "vision_probe_obs")
+                 "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history", "vision_probe_obs", "kgrl_base")
 
 
 @dataclass(frozen=True)
@@ -206,6 +206,16 @@ def _check_options(ns) -> None:
                               f"not {ns.method!r}")
         if not 0 <= ns.kgrl_time_action <= 10:
             raise ConfigError(f"--kgrl-time-action {ns.kgrl_time_action}: control steps per unit action, in [0, 10]")
+    if ns.kgrl_base not in (None, "prior"):
+        if not m.takes_recipe:  # (the kmp methods on SAC)
+            raise ConfigError(f"--kgrl-base is for the kgrl methods on SAC ({names(takes_recipe=True)}), "
+                              f"not {ns.method!r}")
+        if ns.kgrl_time_action:
+            raise ConfigError(f"--kgrl-base {ns.kgrl_base} with --kgrl-time-action: the base controller follows the "
+                              "control step, the time action moves the prior's query; give one of them")
+        if ns.kgrl_base == "centre_latent" and not ns.vision_probe_obs:
+            raise ConfigError("--kgrl-base centre_latent steers by the camera's estimate of the part over the hole: "
+                              "add --vision-probe-obs (a vision method), which gives the env that estimate")
     if ns.kmp_reference is not None and not m.uses_kmp:
         raise ConfigError(f"--kmp-reference is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
     for _, flag, value in prior_table_flags(ns):
@@ -247,6 +257,9 @@ def _check_sac_options(ns, provisional: str):
             "; the SAC methods learn from the demonstrator's rollouts with --sac prior_rollouts_policy=scripted"
         raise ConfigError(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl "
                           f"methods ({names(takes_recipe=True)}), not {ns.method!r}{hint}")
+    if rollouts == "search" and ns.kgrl_base not in (None, "prior"):
+        raise ConfigError(f"--sac prior_rollouts_policy=search with --kgrl-base {ns.kgrl_base}: a = 0 is already "
+                          "that controller; leave prior_rollouts_policy at prior")
     if why := search_without_z_reach(ns, checked, provisional):
         raise ConfigError(why)
     if ns.privileged_critic and getattr(checked, "prior_anchor", False):
@@ -333,6 +346,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         task=ns.task, method=ns.method, env=ns.env, action_dim=ns.action_dim, seed=ns.seed, num_envs=ns.num_envs,
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
         privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
+        kgrl_base=ns.kgrl_base or "prior",
         tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs), obs_history=int(ns.obs_history or 0),
         vision_probe_obs=bool(ns.vision_probe_obs), probe=ns.probe,
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,

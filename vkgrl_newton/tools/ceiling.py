@@ -391,7 +391,9 @@ def latent_lateral(env, task: str, cache_dir: str):
 
 def make_controller(name: str, env, tables, task: str, seed: int = 0, oracle_lateral_noise_mm: float = 0.0,
                     lateral_estimate=None):
-    from ..envs.evaluation import KMPCentrePolicy, KMPOraclePolicy, KMPPriorPolicy, KMPSearchPolicy, ScriptedPolicy
+    # (ORACLE_PUSH_MM: the ceiling oracle's press, 3 mm under the seat; task_search_params: the oracle's settings)
+    from ..envs.evaluation import (ORACLE_PUSH_MM, KMPCentrePolicy, KMPOraclePolicy, KMPPriorPolicy, KMPSearchPolicy,
+                                   ScriptedPolicy, task_search_params)
     from ..envs.kgrl_action import KGRLActionPath
 
     if name in LATENT_CONTROLLERS and lateral_estimate is None:
@@ -409,13 +411,13 @@ def make_controller(name: str, env, tables, task: str, seed: int = 0, oracle_lat
         # part ORACLE_PUSH_MM below its seat (privileged z too)
         g = CEILING_GEOMETRY[task]
         pitch = 2 * math.pi / GEAR_TEETH["medium"] if task == "GearMesh" else None  # the teeth decide the yaw
-        return KMPOraclePolicy.with_floors(tables, env, replace(oracle_params(task), settle_mm=0.3),
+        return KMPOraclePolicy.with_floors(tables, env, task_search_params(task),
                                            push_mm=ORACLE_PUSH_MM, inside_mm=1e3 * (g.rest_height - g.entry_depth),
                                            mesh_pitch=pitch, lateral_noise_mm=oracle_lateral_noise_mm,
                                            noise_seed=seed, lateral_estimate=lateral_estimate if name == "oracle_latent" else None)
     if name in ("centre", "centre_search", "centre_latent"):  # the oracle's settle, x, y from the observation (or
         # the camera's estimate); pressed blind
-        return KMPCentrePolicy.with_floors(tables, env, replace(oracle_params(task), settle_mm=0.3),
+        return KMPCentrePolicy.with_floors(tables, env, task_search_params(task),
                                            push_mm=ORACLE_PUSH_MM, spiral=name == "centre_search",
                                            lateral_estimate=lateral_estimate if name == "centre_latent" else None)
     if name == "prior_push":
@@ -423,9 +425,6 @@ def make_controller(name: str, env, tables, task: str, seed: int = 0, oracle_lat
     raise ValueError(f"controller must be one of {CONTROLLERS}, got {name!r}")
 
 
-# The ceiling oracle's press once the part has dropped: 3 mm under its seat, 0.3 N at Factory's Kp (the demonstrator
-# pushes 4-6 mm at 250 N/m); issue 28's oracle went back to the prior's z, whose seat does not press (README).
-ORACLE_PUSH_MM = 3.0
 # prior_push: the prior with its z lowered this much once it has arrived at its seat: its demonstrations record the
 # TCP's seated pose, not the demonstrator's push (4-6 mm), and the in-hand noise is +-3 mm along the part's axis.
 PRIOR_PUSH_MM = 5.0
