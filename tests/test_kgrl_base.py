@@ -1,0 +1,215 @@
+"""--kgrl-base: a = 0 of a KGRL policy stands for a controller of the ceiling, the policy's actions added to its own
+(envs.kgrl_action.KGRLActionPath.set_base, envs.evaluation.base_controller), and the run options around it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+
+def fake_env(num_envs: int, seed: int = 0):
+    """test_ceiling's fake env with what the base reads besides (the TCP, the vision slot) and step_pose recording
+    its command."""
+    from test_ceiling import fake_env as ceiling_env
+
+    env = ceiling_env(num_envs, seed)
+    env.sent, env.cfg, env.vision_source = [], SimpleNamespace(vision_latent_dim=0), None
+    g = torch.Generator().manual_seed(seed + 1)
+    env.tcp_p = env.target_frame_pos_w + 1e-3 * torch.randn(num_envs, 3, generator=g)
+
+    def privileged():
+        raise AssertionError("the base controller read a privileged pose")
+
+    env.held_pose = privileged
+    env.tcp_pose = lambda: (env.tcp_p, torch.zeros(num_envs, 4))
+    env.step_pose = lambda pos, quat: env.sent.append((pos.clone(), quat.clone())) or "stepped"
+    return env
+
+
+def prior_tables():
+    from vkgrl_newton.kmp.demos import synthetic_demos
+    from vkgrl_newton.kmp.prior import fit_prior
+
+    return fit_prior(synthetic_demos("PegInsert", 6, action_dim=6, seed=0), action_dim=4)
+
+
+class ConstantBase:
+    """A base controller that asks for fixed actions and keeps what it was given."""
+
+    def __init__(self, b: torch.Tensor):
+        self.b, self.inputs = b, []
+
+    def actions(self, env, inputs):
+        self.inputs.append(inputs.clone())
+        return self.b
+
+
+def test_the_policy_acts_on_top_of_the_base_and_a_zero_action_is_the_base(wp_cpu):
+    """step(a) commands the pose of clip(a + b) (the plain path's pose of those actions, float64 clip), the base is
+    called once a step with the TCP relative to the observed target (what a policy observes), and a = 0 is b."""
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
+
+    tables = prior_tables()
+    env = fake_env(3)
+    b = torch.tensor([[0.5, -0.25, 0.0, 0.1], [0.9, 0.9, -0.9, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    base = ConstantBase(b)
+    path = KGRLActionPath(tables, env)
+    path.set_base(base)
+    plain = KGRLActionPath(tables, env)
+    a = torch.tensor([[0.25, 0.5, -0.75, 0.0], [0.3, -0.2, -0.4, 1.0], [-0.1, 0.2, 0.3, -0.4]])
+    want_a = np.clip(a.double().numpy() + b.double().numpy(), -1.0, 1.0)  # 0.9 + 0.3 and -0.9 - 0.4 saturate
+    assert want_a[1, 0] == 1.0 and want_a[1, 2] == -1.0
+    for n, actions, expect in ((0, a, want_a), (7, a, want_a), (8, torch.zeros_like(a), b.double().numpy())):
+        env.step_index.fill_(n)
+        env.episode_length_buf.fill_(n)
+        assert path.step(actions) == "stepped"
+        pos, quat = (t.clone() for t in plain.pose(torch.from_numpy(expect).float()))
+        torch.testing.assert_close(env.sent[-1][0], pos, rtol=0, atol=0)
+        torch.testing.assert_close(env.sent[-1][1], quat, rtol=0, atol=0)
+    assert len(base.inputs) == 3  # once a control step
+    want_rel = (env.tcp_p - env.target_frame_pos_w).numpy()
+    for x in base.inputs:
+        np.testing.assert_array_equal(x[:, 1:4].numpy(), want_rel)
+    # without a base the actions pass as they are
+    path.set_base(None)
+    assert path.with_base(a) is a
+    path.set_base(base)
+    with pytest.raises(ValueError, match="actions must have shape"):
+        path.with_base(a[:, :3])
+
+
+def test_the_base_controllers_are_the_ceilings_with_the_runs_reach(wp_cpu):
+    """centre_search and centre_latent are tools/ceiling.py's controllers (issue 28's oracle settings with the task's
+    blocked test, the 0.3 mm settle, the 3 mm press) in the run's own action path; prior is none; centre_latent reads
+    the last two entries of the env's vision slot (the probe's estimate) and needs the probe."""
+    from vkgrl_newton.envs.evaluation import (BASE_CONTROLLERS, ORACLE_PUSH_MM, REST_HEIGHT, KMPCentrePolicy,
+                                              base_controller, task_search_params)
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
+    from vkgrl_newton.tools.ceiling import CEILING_GEOMETRY, oracle_params
+
+    for task, geometry in CEILING_GEOMETRY.items():  # one blocked test, two geometry tables
+        assert REST_HEIGHT[task] == geometry.rest_height
+        assert task_search_params(task) == replace(oracle_params(task), settle_mm=0.3)
+    assert task_search_params("PegInsert").blocked_mm == 15.0  # issue 28's, 0.6 of the 25 mm hole
+    assert BASE_CONTROLLERS == ("prior", "centre_search", "centre_latent")
+    env = fake_env(2)
+    path = KGRLActionPath(prior_tables(), env, reach_floor=3e-3, reach_floor_z=25e-3)
+    assert base_controller("prior", path, "PegInsert") is None
+    search = base_controller("centre_search", path, "PegInsert")
+    assert isinstance(search, KMPCentrePolicy) and search.spiral and search.lateral_estimate is None
+    assert search.path is path and search.params == task_search_params("PegInsert") and search.push_mm == ORACLE_PUSH_MM
+    with pytest.raises(ValueError, match="allowed: prior, centre_search, centre_latent"):
+        base_controller("oracle", path, "PegInsert")
+    with pytest.raises(ValueError, match="--vision-probe-obs"):
+        base_controller("centre_latent", path, "PegInsert")
+    # an env whose vision slot carries the probe's estimate: 16 latent entries + world x, y
+    latent = torch.randn(2, 18, generator=torch.Generator().manual_seed(1))
+    env.cfg.vision_latent_dim = 18
+    env.vision_source = SimpleNamespace(probe=object())
+    reads = []
+    env.current_vision_latent = lambda: reads.append(1) or latent
+    camera = base_controller("centre_latent", path, "PegInsert")
+    assert not camera.spiral and camera.params == task_search_params("PegInsert")
+    np.testing.assert_array_equal(camera.lateral_estimate(env).numpy(), latent[:, 16:].numpy())
+    assert reads == [1]
+    env.vision_source = SimpleNamespace(probe=None)  # the camera without the probe
+    with pytest.raises(ValueError, match="--vision-probe-obs"):
+        base_controller("centre_latent", path, "PegInsert")
+
+
+def test_the_base_steers_once_blocked_and_the_policy_adds_to_it(wp_cpu):
+    """The centre_search base in a path: the step's command is the plain path's pose of clip(a + the base's actions),
+    the base's computed by a twin controller fed the same observations: zeta = 0 until the blocked test holds (the
+    step is a's alone), the spiral about the observed target after."""
+    from vkgrl_newton.envs.evaluation import base_controller
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
+
+    tables = prior_tables()
+    env = fake_env(2)
+    path = KGRLActionPath(tables, env, reach_floor=3e-3, reach_floor_z=25e-3)
+    base = base_controller("centre_search", path, "PegInsert")
+    path.set_base(base)
+    plain = KGRLActionPath(tables, env, reach_floor=3e-3, reach_floor_z=25e-3)
+    twin = base_controller("centre_search", plain, "PegInsert")
+    mean = path.tables.mean.numpy()
+    a = torch.tensor([[0.05, -0.05, 0.02, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    moved = 0
+    for n in range(90):
+        env.step_index.fill_(n)
+        env.episode_length_buf.fill_(n)
+        # the TCP held 20 mm above the prior's seat from step 1, off the observed target: blocked at n_min (60)
+        rel = torch.tensor([[0.5e-3, -0.4e-3, 0.0], [-0.2e-3, 0.7e-3, 0.0]])
+        rel[:, 2] = float(mean[-1, 2] + 20e-3) if n >= 1 else float(mean[0, 2])
+        env.tcp_p = env.target_frame_pos_w + rel
+        b = twin.actions(env, torch.cat([torch.zeros(2, 1), env.tcp_p - env.target_frame_pos_w], -1))
+        path.step(a)
+        want = torch.from_numpy(np.clip(a.double().numpy() + b.double().numpy(), -1.0, 1.0)).float()
+        torch.testing.assert_close(env.sent[-1][0], plain.pose(want)[0].clone(), rtol=0, atol=0)
+        if n < 60:
+            assert bool((b == 0).all()), n  # the prior until blocked
+        moved += int(bool((b != 0).any()))
+    assert base.since.tolist() == [60, 60] and moved == 30  # blocked at n_min, then searching every step
+
+
+def test_the_option_is_recorded_refused_where_it_cannot_hold_and_rebuilt_by_evaluate(tmp_path):
+    import argparse
+
+    from vkgrl_newton.run.config import ConfigError, build_parser
+    from vkgrl_newton.run.evaluate import evaluation_config
+    from vkgrl_newton.run.resolve import resolve
+
+    def run(*argv):
+        return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r"), "--cpu-matmul",
+                                        "torch"]).config
+
+    camera = run("--method", "vision_kgrl", "--vision-probe-obs", "--kgrl-base", "centre_latent")
+    assert camera.kgrl_base == "centre_latent" and camera.meta()["kgrl_base"] == "centre_latent"
+    blind = run("--method", "kgrl", "--kgrl-base", "centre_search")
+    assert blind.meta()["kgrl_base"] == "centre_search" and blind.obs_dim == run("--method", "kgrl").obs_dim
+    for plain in (run("--method", "kgrl"), run("--method", "kgrl", "--kgrl-base", "prior")):
+        assert plain.kgrl_base == "prior" and "kgrl_base" not in plain.meta()  # older runs still resume
+    with pytest.raises(ConfigError, match="--kgrl-base is for the kgrl methods on SAC"):
+        run("--method", "sac", "--kgrl-base", "centre_search")
+    with pytest.raises(ConfigError, match="--kgrl-base is for the kgrl methods on SAC"):
+        resolve(build_parser(), ["--method", "kgrl_ppo", "--kgrl-base", "centre_search", "--device", "cpu",
+                                 "--run-dir", str(tmp_path / "p")])
+    with pytest.raises(ConfigError, match="add --vision-probe-obs"):
+        run("--method", "vision_kgrl", "--kgrl-base", "centre_latent")
+    with pytest.raises(ConfigError, match="with --kgrl-time-action"):
+        run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-time-action", "2")
+    with pytest.raises(ConfigError, match="prior_rollouts_policy=search with --kgrl-base"):
+        run("--method", "kgrl", "--kgrl-base", "centre_search", "--sac", "prior_rollouts_policy=search")
+    args = argparse.Namespace(task="PegInsert", env="factory", action_dim=4, seed=0, num_envs=2, no_time_obs=False,
+                              geometry=None, demos=None, kmp_reference="gmr", device="cpu", cache_dir=tmp_path,
+                              eager_physics=False, policy=None)
+    assert evaluation_config(args, {"meta": blind.meta()}).kgrl_base == "centre_search"
+    assert evaluation_config(args, {"meta": run("--method", "kgrl").meta()}).kgrl_base == "prior"
+
+
+@pytest.mark.slow
+def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cpu, tmp_path):
+    import json
+
+    from scripts import TINY_RUN, load_script
+
+    run_dir = tmp_path / "base"
+    tiny = [*TINY_RUN, "--cpu-matmul", "torch"]
+    argv = ["--method", "kgrl", "--kgrl-base", "centre_search", "--run-dir", str(run_dir), "--eval-episodes", "0",
+            "--cache-dir", str(tmp_path / "cache"), "--num-demos", "2", *tiny]
+    assert load_script("run").main([*argv, "--total-steps", "16"]) == 0
+    assert json.loads((run_dir / "config.json").read_text())["kgrl_base"] == "centre_search"
+    # a resume keeps the run's base (given again or not) and refuses another
+    assert load_script("run").main(["--resume", "--run-dir", str(run_dir), "--total-steps", "32", "--no-progress"]) == 0
+    with pytest.raises(SystemExit) as refused:
+        load_script("run").main(["--resume", "--run-dir", str(run_dir), "--kgrl-base", "prior", "--total-steps", "48",
+                                 "--no-progress"])
+    assert refused.value.code == 2
+    out = tmp_path / "eval.json"
+    assert load_script("evaluate").main(["--checkpoint", str(run_dir / "checkpoints" / "last.pt"), "--num-envs", "2",
+                                         "--episodes", "1", "--device", "cpu", "--json", str(out),
+                                         "--cache-dir", str(tmp_path / "cache")]) == 0
+    assert json.loads(out.read_text())["episodes"] == 2
