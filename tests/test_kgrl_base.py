@@ -74,6 +74,16 @@ def test_the_policy_acts_on_top_of_the_base_and_a_zero_action_is_the_base(wp_cpu
     want_rel = (env.tcp_p - env.target_frame_pos_w).numpy()
     for x in base.inputs:
         np.testing.assert_array_equal(x[:, 1:4].numpy(), want_rel)
+    # with a residual scale the policy's actions are scaled before they are added
+    path.set_base(base, residual_scale=0.2)
+    env.step_index.fill_(9)
+    path.step(a)
+    want_s = np.clip(0.2 * a.double().numpy() + b.double().numpy(), -1.0, 1.0)
+    torch.testing.assert_close(env.sent[-1][0], plain.pose(torch.from_numpy(want_s).float())[0].clone(), rtol=0,
+                               atol=1e-7)  # (0.2 a in float32 against float64: within an ulp of the action)
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="residual_scale"):
+            path.set_base(base, residual_scale=bad)
     # without a base the actions pass as they are
     path.set_base(None)
     assert path.with_base(a) is a
@@ -183,10 +193,19 @@ def test_the_option_is_recorded_refused_where_it_cannot_hold_and_rebuilt_by_eval
         run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-time-action", "2")
     with pytest.raises(ConfigError, match="prior_rollouts_policy=search with --kgrl-base"):
         run("--method", "kgrl", "--kgrl-base", "centre_search", "--sac", "prior_rollouts_policy=search")
+    scaled = run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-residual-scale", "0.2")
+    assert scaled.kgrl_residual_scale == 0.2 and scaled.meta()["kgrl_residual_scale"] == 0.2
+    assert "kgrl_residual_scale" not in blind.meta()
+    for bad in ("0", "1.5", "nan"):
+        with pytest.raises(ConfigError, match="a number in \\(0, 1\\]"):
+            run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-residual-scale", bad)
+    with pytest.raises(ConfigError, match="give --kgrl-base centre_search or centre_latent"):
+        run("--method", "kgrl", "--kgrl-residual-scale", "0.5")
     args = argparse.Namespace(task="PegInsert", env="factory", action_dim=4, seed=0, num_envs=2, no_time_obs=False,
                               geometry=None, demos=None, kmp_reference="gmr", device="cpu", cache_dir=tmp_path,
                               eager_physics=False, policy=None)
     assert evaluation_config(args, {"meta": blind.meta()}).kgrl_base == "centre_search"
+    assert evaluation_config(args, {"meta": scaled.meta()}).kgrl_residual_scale == 0.2
     assert evaluation_config(args, {"meta": run("--method", "kgrl").meta()}).kgrl_base == "prior"
 
 
@@ -213,3 +232,29 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
                                          "--episodes", "1", "--device", "cpu", "--json", str(out),
                                          "--cache-dir", str(tmp_path / "cache")]) == 0
     assert json.loads(out.read_text())["episodes"] == 2
+
+
+def test_the_prior_evaluation_a_run_reuses_is_its_own_bases(tmp_path):
+    """a = 0 is the base controller: the cached evaluation of a = 0 (run.train.prior_evaluation_key) is keyed by the
+    base, and centre_latent's by the VAE and probe files it steers by (their sha256, against hashlib's)."""
+    import hashlib
+
+    from vkgrl_newton.run.config import RunConfig
+    from vkgrl_newton.run.train import prior_evaluation_key
+
+    env = SimpleNamespace(num_envs=2, device="cpu", cfg=SimpleNamespace(vision_latent_dim=18))
+    path = SimpleNamespace(tables=SimpleNamespace(mean=torch.zeros(3, 6)))
+    vae, probe = tmp_path / "vae.pt", tmp_path / "probe.npz"
+    vae.write_bytes(b"vae")
+    probe.write_bytes(b"probe")
+    common = {"method": "vision_kgrl", "vae": vae, "vision_probe_obs": True, "probe": probe, "cache_dir": tmp_path}
+    keys = {base: prior_evaluation_key(RunConfig(kgrl_base=base, **common), env, path)
+            for base in ("prior", "centre_search", "centre_latent")}
+    assert len({str(sorted(k.items())) for k in keys.values()}) == 3
+    assert keys["centre_latent"]["vae_sha256"] == hashlib.sha256(b"vae").hexdigest()
+    assert keys["centre_latent"]["probe_sha256"] == hashlib.sha256(b"probe").hexdigest()
+    assert "probe_sha256" not in keys["prior"] and "probe_sha256" not in keys["centre_search"]
+    scaled = prior_evaluation_key(RunConfig(kgrl_base="centre_latent", kgrl_residual_scale=0.2, **common), env, path)
+    assert scaled == keys["centre_latent"]  # the scale leaves a = 0 alone
+    probe.write_bytes(b"another probe")
+    assert prior_evaluation_key(RunConfig(kgrl_base="centre_latent", **common), env, path) != keys["centre_latent"]

@@ -44,7 +44,7 @@ class KGRLActionPath:
             raise ValueError(f"time_steps={time_steps!r}: control steps per unit time action, an int in "
                              f"[0, {tables.n_steps}]")
         self.env = env
-        self.base = None  # set_base: the controller a = 0 stands for (None: the prior)
+        self.base, self.residual_scale = None, 1.0  # set_base: the controller a = 0 stands for (None: the prior)
         self.env_action_dim = env.num_actions
         self.time_steps = time_steps
         self.action_dim = env.num_actions + (1 if time_steps else 0)  # the policy's: + a_t with the time action
@@ -93,15 +93,19 @@ class KGRLActionPath:
                          w["eta"], w["pos"], w["quat"])
         return self.tcp_pos_cmd_w, self.tcp_quat_cmd_w
 
-    def set_base(self, base) -> None:
+    def set_base(self, base, residual_scale: float = 1.0) -> None:
         """A controller under the policy's actions (--kgrl-base; envs.evaluation.base_controller), or None: the
         prior. Each `step` adds the policy's actions to the base's `actions(env, inputs)` (a residual, as ResiP;
         clipped to [-1, 1]), so that a = 0 is the base controller. The base keeps per-world state from step to step
-        (it restarts where an episode starts): `step` calls it exactly once a control step; `pose` never does."""
-        self.base = base
+        (it restarts where an episode starts): `step` calls it exactly once a control step; `pose` never does.
+        residual_scale in (0, 1]: the policy's actions are scaled by it before they are added (ResiP's residual
+        scale: a bounded correction, and exploration noise that much smaller around the base)."""
+        if not (0.0 < residual_scale <= 1.0):
+            raise ValueError(f"residual_scale={residual_scale!r}; allowed: (0, 1]")
+        self.base, self.residual_scale = base, float(residual_scale)
 
     def with_base(self, actions: torch.Tensor) -> torch.Tensor:
-        """The actions `step` commands: the policy's plus the base's on the env's axes (the time action's a_t
+        """The actions `step` commands: the policy's (times residual_scale) plus the base's on the env's axes (the time action's a_t
         stays the policy's), for the state now; the policy's as they are without a base."""
         if self.base is None:
             return actions
@@ -114,7 +118,7 @@ class KGRLActionPath:
                             env.tcp_pose()[0] - env.target_frame_pos_w], -1)
         out = actions.to(torch.float32).clone()
         D = self.env_action_dim
-        out[:, :D] = (out[:, :D] + self.base.actions(env, inputs).to(out)).clamp(-1.0, 1.0)
+        out[:, :D] = (self.residual_scale * out[:, :D] + self.base.actions(env, inputs).to(out)).clamp(-1.0, 1.0)
         return out
 
     def step(self, actions: torch.Tensor):

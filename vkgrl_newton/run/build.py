@@ -94,7 +94,8 @@ def build_action_path(cfg: RunConfig, env, log=print):
     tables, demos_path = prior_tables(cfg, log)
     path = KGRLActionPath(tables, env, reach_floor=1e-3 * cfg.reach_floor_mm, reach_floor_z=1e-3 * cfg.reach_floor_z_mm,
                           time_steps=cfg.kgrl_time_action, seat_press=1e-3 * cfg.seat_press_mm)
-    path.set_base(base_controller(cfg.kgrl_base, path, cfg.task))  # --kgrl-base (None: a = 0 is the prior)
+    # --kgrl-base (None: a = 0 is the prior), --kgrl-residual-scale
+    path.set_base(base_controller(cfg.kgrl_base, path, cfg.task), cfg.kgrl_residual_scale)
     return path, demos_path
 
 

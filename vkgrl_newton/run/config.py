@@ -66,6 +66,7 @@ class RunConfig:
     # what a = 0 stands for (the kmp methods on SAC; envs.evaluation.BASE_CONTROLLERS): the KMP prior (the thesis), or
     # a controller of the ceiling under the policy's actions (a residual): centre_search, centre_latent
     kgrl_base: str = "prior"
+    kgrl_residual_scale: float = 1.0  # with a base: the policy's actions scaled by it before they are added
     # the policy's extra inputs (envs.assembly_env.EnvConfig; deviations from eq. 5.5): the TCP's velocity,
     # and in Factory the smoothed contact force (Forge's observation has it)
     tcp_velocity_obs: bool = False
@@ -180,6 +181,8 @@ class RunConfig:
             meta["kgrl_time_action"] = self.kgrl_time_action
         if self.kgrl_base != "prior":  # likewise
             meta["kgrl_base"] = self.kgrl_base
+        if self.kgrl_residual_scale != 1.0:  # likewise
+            meta["kgrl_residual_scale"] = self.kgrl_residual_scale
         for name in ("tcp_velocity_obs", "force_obs", "vision_probe_obs"):  # likewise
             if getattr(self, name):
                 meta[name] = True
@@ -244,6 +247,10 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "steer by the camera's estimate of the part over the hole; needs --vision-probe-obs). The "
                          "prior evaluated beside the policy is then that controller (a = 0). A deviation from eq. 4.36; "
                          "not with --kgrl-time-action or --sac prior_rollouts_policy=search")
+    ap.add_argument("--kgrl-residual-scale", type=float, default=None, metavar="S",
+                    help="with --kgrl-base: the policy's actions are scaled by S in (0, 1] before they are added to the "
+                         "base's (ResiP's residual scale: a bounded correction, smaller exploration around the base). "
+                         "Default 1")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
                     help=f"{names(takes_recipe=True)}: the defaults under --sac and the reach floors: reach_keep_prior "
                          "(the quick preset's: beats the prior on paired episodes, docs/results.md) or base (the "

@@ -101,6 +101,7 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      seat_press_mm=prior.get("seat_press_mm", 0.0),
                      vae=Path(meta["vision"]["vae"]) if "vision" in meta else None,
                      kgrl_time_action=meta.get("kgrl_time_action", 0), kgrl_base=meta.get("kgrl_base", "prior"),
+                     kgrl_residual_scale=meta.get("kgrl_residual_scale", 1.0),
                      tcp_velocity_obs=meta.get("tcp_velocity_obs", False),
                      force_obs=meta.get("force_obs", False), vision_probe_obs=meta.get("vision_probe_obs", False),
                      probe=Path(meta["vision"]["probe"]) if "probe" in meta.get("vision", {}) else None,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,7 +30,8 @@ _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first
                   "nothing to resume; choose another directory, or delete this one to start it again")
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
 _RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic",
-                 "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history", "vision_probe_obs", "kgrl_base")
+                 "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history", "vision_probe_obs", "kgrl_base",
+                 "kgrl_residual_scale")
 
 
 @dataclass(frozen=True)
@@ -216,6 +218,13 @@ def _check_options(ns) -> None:
         if ns.kgrl_base == "centre_latent" and not ns.vision_probe_obs:
             raise ConfigError("--kgrl-base centre_latent steers by the camera's estimate of the part over the hole: "
                               "add --vision-probe-obs (a vision method), which gives the env that estimate")
+    if ns.kgrl_residual_scale is not None:
+        if ns.kgrl_base in (None, "prior") and ns.kgrl_residual_scale != 1.0:
+            raise ConfigError("--kgrl-residual-scale scales the policy's actions on a base controller: give "
+                              "--kgrl-base centre_search or centre_latent (on the prior the null space's scale is the "
+                              "thesis's w)")
+        if not (math.isfinite(ns.kgrl_residual_scale) and 0.0 < ns.kgrl_residual_scale <= 1.0):
+            raise ConfigError(f"--kgrl-residual-scale {ns.kgrl_residual_scale}: a number in (0, 1]")
     if ns.kmp_reference is not None and not m.uses_kmp:
         raise ConfigError(f"--kmp-reference is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
     for _, flag, value in prior_table_flags(ns):
@@ -346,7 +355,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         task=ns.task, method=ns.method, env=ns.env, action_dim=ns.action_dim, seed=ns.seed, num_envs=ns.num_envs,
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
         privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
-        kgrl_base=ns.kgrl_base or "prior",
+        kgrl_base=ns.kgrl_base or "prior", kgrl_residual_scale=float(ns.kgrl_residual_scale or 1.0),
         tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs), obs_history=int(ns.obs_history or 0),
         vision_probe_obs=bool(ns.vision_probe_obs), probe=ns.probe,
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,

@@ -25,7 +25,7 @@ from .build import Built, build_action_path, build_agent, build_encoder, build_e
 from .config import RunConfig
 from .loops import Loop, ppo_loop, restore_rng, rng_state, sac_loop
 
-__all__ = ["train", "final_evaluation", "paired_line", "run_meta_with_files"]
+__all__ = ["train", "final_evaluation", "prior_evaluation_key", "paired_line", "run_meta_with_files"]
 
 
 def train(cfg: RunConfig, payload: dict | None = None, torch_threads: int | None = None, log=None) -> int:
@@ -253,13 +253,8 @@ def final_evaluation(cfg: RunConfig, env, agent, action_path) -> dict:
             return evaluate(env, KMPPriorPolicy(action_path), cfg.eval_episodes, progress=cfg.progress,
                             desc="the prior, same episodes")
 
-        # a = 0 on these episodes is the same for every training seed and variant of the configuration
-        key = {"what": "kgrl prior evaluation", "task": cfg.task, "env": cfg.env, "action_dim": cfg.action_dim,
-               "num_envs": env.num_envs, "device": str(env.device), "geometry": cfg.geometry,
-               "eager_physics": bool(cfg.eager_physics), "vision_latent_dim": env.cfg.vision_latent_dim,
-               "eval_seed": cfg.eval_seed, "eval_episodes": cfg.eval_episodes,
-               "prior_mean_sha256": hashlib.sha256(action_path.tables.mean.numpy().tobytes()).hexdigest()}
-        prior, _ = cached_evaluation(cfg.cache_dir, key, evaluate_prior, log=print)
+        prior, _ = cached_evaluation(cfg.cache_dir, prior_evaluation_key(cfg, env, action_path), evaluate_prior,
+                                     log=print)
         metrics["prior_eval"] = {k: v for k, v in prior.items() if k != "per_episode"}
         metrics["prior_eval"]["per_episode"] = [{k: e[k] for k in ("world_success", "world_contact_force")}
                                                 for e in prior["per_episode"]]
@@ -275,3 +270,20 @@ def paired_line(metrics: dict) -> str:
     g = metrics["paired_gain"]["success_rate"]
     return (f"success {metrics['success_rate']:.3f}, the prior {metrics['prior_eval']['success_rate']:.3f} on the same "
             f"{g['n_pairs']} episodes: " + format_gain("gain", g))
+
+
+def prior_evaluation_key(cfg: RunConfig, env, action_path) -> dict:
+    """Every input of the evaluation of a = 0 on the run's evaluation episodes (results.paired.cached_evaluation): the
+    same for every training seed and variant of the configuration that leaves a = 0 alone. With --kgrl-base a = 0 is
+    the base controller; centre_latent's episodes also depend on the VAE and the probe it reads the camera through."""
+    key = {"what": "kgrl prior evaluation", "task": cfg.task, "env": cfg.env, "action_dim": cfg.action_dim,
+           "num_envs": env.num_envs, "device": str(env.device), "geometry": cfg.geometry,
+           "eager_physics": bool(cfg.eager_physics), "vision_latent_dim": env.cfg.vision_latent_dim,
+           "eval_seed": cfg.eval_seed, "eval_episodes": cfg.eval_episodes,
+           "prior_mean_sha256": hashlib.sha256(action_path.tables.mean.numpy().tobytes()).hexdigest(),
+           "kgrl_base": cfg.kgrl_base}
+    if cfg.kgrl_base == "centre_latent":
+        from ..cache import file_sha256
+
+        key.update(vae_sha256=file_sha256(cfg.vae_path()), probe_sha256=file_sha256(cfg.probe_path()))
+    return key
