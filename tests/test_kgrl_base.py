@@ -191,6 +191,19 @@ def test_the_option_is_recorded_refused_where_it_cannot_hold_and_rebuilt_by_eval
         run("--method", "vision_kgrl", "--kgrl-base", "centre_latent")
     with pytest.raises(ConfigError, match="with --kgrl-time-action"):
         run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-time-action", "2")
+    with pytest.raises(ConfigError, match="it needs z reach"):  # the thesis's null space: ~2 mm of z there
+        run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-recipe", "base")
+    with pytest.raises(ConfigError, match="it needs z reach"):
+        run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-reach-floor-z", "0")
+    assert run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-recipe", "base", "--kgrl-reach-floor-z",
+               "25").reach_floor_z_mm == 25.0
+    with pytest.raises(ConfigError, match="with --kgrl-seat-press"):
+        run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-seat-press", "3")
+    # the parser's choices are the controllers' (the command line parses before torch loads: a literal there)
+    from vkgrl_newton.envs.evaluation import BASE_CONTROLLERS
+
+    action = next(a for a in build_parser()._actions if a.dest == "kgrl_base")
+    assert tuple(action.choices) == BASE_CONTROLLERS
     with pytest.raises(ConfigError, match="prior_rollouts_policy=search with --kgrl-base"):
         run("--method", "kgrl", "--kgrl-base", "centre_search", "--sac", "prior_rollouts_policy=search")
     scaled = run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-residual-scale", "0.2")
@@ -223,6 +236,7 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
     assert json.loads((run_dir / "config.json").read_text())["kgrl_base"] == "centre_search"
     # a resume keeps the run's base (given again or not) and refuses another
     assert load_script("run").main(["--resume", "--run-dir", str(run_dir), "--total-steps", "32", "--no-progress"]) == 0
+    assert json.loads((run_dir / "config.json").read_text())["kgrl_base"] == "centre_search"
     with pytest.raises(SystemExit) as refused:
         load_script("run").main(["--resume", "--run-dir", str(run_dir), "--kgrl-base", "prior", "--total-steps", "48",
                                  "--no-progress"])
@@ -243,7 +257,7 @@ def test_the_prior_evaluation_a_run_reuses_is_its_own_bases(tmp_path):
     from vkgrl_newton.run.train import prior_evaluation_key
 
     env = SimpleNamespace(num_envs=2, device="cpu", cfg=SimpleNamespace(vision_latent_dim=18))
-    path = SimpleNamespace(tables=SimpleNamespace(mean=torch.zeros(3, 6)))
+    path = SimpleNamespace(tables=SimpleNamespace(mean=torch.zeros(3, 6), gain=torch.zeros(3, 6, 6)))
     vae, probe = tmp_path / "vae.pt", tmp_path / "probe.npz"
     vae.write_bytes(b"vae")
     probe.write_bytes(b"probe")
@@ -256,5 +270,13 @@ def test_the_prior_evaluation_a_run_reuses_is_its_own_bases(tmp_path):
     assert "probe_sha256" not in keys["prior"] and "probe_sha256" not in keys["centre_search"]
     scaled = prior_evaluation_key(RunConfig(kgrl_base="centre_latent", kgrl_residual_scale=0.2, **common), env, path)
     assert scaled == keys["centre_latent"]  # the scale leaves a = 0 alone
+    # the same base through another null space (reach floors: the gain) is another a = 0; the mean alone is the same
+    wider = SimpleNamespace(tables=SimpleNamespace(mean=torch.zeros(3, 6), gain=torch.ones(3, 6, 6)))
+    assert prior_evaluation_key(RunConfig(kgrl_base="centre_search", **common), env, path) != \
+        prior_evaluation_key(RunConfig(kgrl_base="centre_search", **common), env, wider)
+    assert prior_evaluation_key(RunConfig(**common), env, path) == prior_evaluation_key(RunConfig(**common), env, wider)
+    # --force-obs draws from the generator of the episodes' resets: other episodes
+    assert prior_evaluation_key(RunConfig(method="kgrl", force_obs=True), env, path) != \
+        prior_evaluation_key(RunConfig(method="kgrl"), env, path)
     probe.write_bytes(b"another probe")
     assert prior_evaluation_key(RunConfig(kgrl_base="centre_latent", **common), env, path) != keys["centre_latent"]

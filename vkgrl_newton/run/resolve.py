@@ -266,6 +266,16 @@ def _check_sac_options(ns, provisional: str):
             "; the SAC methods learn from the demonstrator's rollouts with --sac prior_rollouts_policy=scripted"
         raise ConfigError(f"--sac {prior_only[0]}: acts with or learns from the KMP prior (a = 0), for the kgrl "
                           f"methods ({names(takes_recipe=True)}), not {ns.method!r}{hint}")
+    if ns.kgrl_base not in (None, "prior") and not ns.resume and METHODS[ns.method].takes_recipe:
+        reach_z = ns.kgrl_reach_floor_z if ns.kgrl_reach_floor_z is not None else \
+            kgrl_recipe(ns, provisional)["reach_floor_z_mm"]
+        if not reach_z:
+            raise ConfigError(f"--kgrl-base {ns.kgrl_base} lightens the prior's ~20 mm press on a blocked part, as the "
+                              "search does: it needs z reach, give --kgrl-reach-floor-z MM (e.g. 25; the thesis's null "
+                              "space, --kgrl-recipe base, reaches ~2 mm there)")
+        if ns.kgrl_seat_press:
+            raise ConfigError(f"--kgrl-base {ns.kgrl_base} with --kgrl-seat-press: the base presses a settled part "
+                              "3 mm under the prior's seat already; give one of them")
     if rollouts == "search" and ns.kgrl_base not in (None, "prior"):
         raise ConfigError(f"--sac prior_rollouts_policy=search with --kgrl-base {ns.kgrl_base}: a = 0 is already "
                           "that controller; leave prior_rollouts_policy at prior")

@@ -275,13 +275,19 @@ def paired_line(metrics: dict) -> str:
 def prior_evaluation_key(cfg: RunConfig, env, action_path) -> dict:
     """Every input of the evaluation of a = 0 on the run's evaluation episodes (results.paired.cached_evaluation): the
     same for every training seed and variant of the configuration that leaves a = 0 alone. With --kgrl-base a = 0 is
-    the base controller; centre_latent's episodes also depend on the VAE and the probe it reads the camera through."""
+    the base controller, which steers through the null space (its gain: the reach floors); centre_latent's episodes
+    also depend on the VAE and the probe it reads the camera through. --force-obs draws its noise from the generator
+    of the episodes' resets."""
     key = {"what": "kgrl prior evaluation", "task": cfg.task, "env": cfg.env, "action_dim": cfg.action_dim,
            "num_envs": env.num_envs, "device": str(env.device), "geometry": cfg.geometry,
            "eager_physics": bool(cfg.eager_physics), "vision_latent_dim": env.cfg.vision_latent_dim,
            "eval_seed": cfg.eval_seed, "eval_episodes": cfg.eval_episodes,
            "prior_mean_sha256": hashlib.sha256(action_path.tables.mean.numpy().tobytes()).hexdigest(),
            "kgrl_base": cfg.kgrl_base}
+    if cfg.force_obs:  # its noise comes from the generator that draws the episodes' resets
+        key["force_obs"] = True
+    if cfg.kgrl_base != "prior":  # a base steers through the null space: the gain (the reach floors) decides it too
+        key["prior_gain_sha256"] = hashlib.sha256(action_path.tables.gain.numpy().tobytes()).hexdigest()
     if cfg.kgrl_base == "centre_latent":
         from ..cache import file_sha256
 

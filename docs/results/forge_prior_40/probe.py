@@ -37,8 +37,8 @@ def wider_oracle(env, tables, floor_mm, gain):
     """tools.ceiling's oracle with other x, y reach floors and lateral gain (None: the ceiling's)."""
     from dataclasses import replace
 
-    from vkgrl_newton.envs.evaluation import ORACLE_GAIN, KMPOraclePolicy
-    from vkgrl_newton.tools.ceiling import CEILING_GEOMETRY, ORACLE_PUSH_MM, oracle_params
+    from vkgrl_newton.envs.evaluation import ORACLE_GAIN, ORACLE_PUSH_MM, KMPOraclePolicy
+    from vkgrl_newton.tools.ceiling import CEILING_GEOMETRY, oracle_params
 
     g = CEILING_GEOMETRY["PegInsert"]
     p = replace(oracle_params("PegInsert"), settle_mm=0.3)
