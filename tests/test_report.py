@@ -332,3 +332,24 @@ def test_a_report_reads_its_copy_of_the_runs_again(report_py, runs, tmp_path):
     report_py.main([str(later), str(other), "--out", str(two), "--reps", "300"])
     copies = sorted(p.parent.relative_to(two / "runs").as_posix() for p in (two / "runs").rglob("metrics.json"))
     assert copies == ["PegInsert_factory_4d_kgrl/seed3", "other_sweep__PegInsert_factory_4d_kgrl/seed3"]
+
+
+def test_the_a_zero_level_names_the_runs_base(tmp_path):
+    """The success panel's a = 0 line says what a = 0 was: the KMP prior, or the --kgrl-base controller."""
+    import json
+
+    from vkgrl_newton.results.plots import reference_levels
+
+    configs = [{"task": "PegInsert", "env": "factory", "action_dim": 4, "method": "kgrl"}]
+    for base, want in ((None, "KMP prior (a = 0), final eval 0.141"),
+                       ("centre_latent", "centre_latent controller (a = 0), final eval 0.859")):
+        runs = []
+        for seed in (0, 1):
+            run = tmp_path / f"{base}_{seed}"
+            run.mkdir()
+            metrics = {"prior_eval": {"success_rate": 0.859 if base else 0.141}}
+            if base:
+                metrics["kgrl_base"] = base
+            (run / "metrics.json").write_text(json.dumps(metrics))
+            runs.append(run)
+        assert [lv[0] for lv in reference_levels(runs, configs) if lv[2] == "prior"] == [want]

@@ -114,12 +114,16 @@ def reference_levels(run_dirs: list[Path], configs: list[dict]) -> list[tuple[st
     for run_dir in run_dirs:
         path = Path(run_dir) / "metrics.json"
         if path.exists():
-            prior = read_json_object(path, "run's metrics.json").get("prior_eval")
+            metrics = read_json_object(path, "run's metrics.json")
+            prior = metrics.get("prior_eval")
             rate = prior.get("success_rate") if isinstance(prior, dict) else None
-            priors.add(rate if isinstance(rate, (int, float)) and not isinstance(rate, bool) else None)
+            # a = 0 is the KMP prior, or with --kgrl-base that controller (metrics.json carries the run's meta)
+            base = metrics.get("kgrl_base", "prior")
+            priors.add((rate, base) if isinstance(rate, (int, float)) and not isinstance(rate, bool) else None)
     if len(priors) == 1 and None not in priors:
-        rate = float(priors.pop())
-        levels.append((f"KMP prior (a = 0), final eval {rate:.3f}", rate, "prior"))
+        rate, base = priors.pop()
+        what = "KMP prior" if base == "prior" else f"{base} controller"
+        levels.append((f"{what} (a = 0), final eval {float(rate):.3f}", float(rate), "prior"))
     evals = {(c.get("eval_seed"), c.get("num_envs")) for c in configs}
     if len(evals) == 1:
         seed, worlds = evals.pop()
