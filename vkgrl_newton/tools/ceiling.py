@@ -441,9 +441,10 @@ def pushed_prior(tables, push: float):
 def oracle_params(task: str):
     """Issue 28's oracle settings; its blocked test (TCP 15 mm above the prior's seated height on PegInsert,
     0.6 of the 25 mm the peg travels in the hole) scaled to each task's travel (rest_height)."""
-    from ..envs.evaluation import ORACLE_PARAMS
+    from ..envs.evaluation import ORACLE_PARAMS, task_search_params
 
-    return replace(ORACLE_PARAMS, blocked_mm=round(0.6 * 1e3 * CEILING_GEOMETRY[task].rest_height, 3))
+    # (the blocked test's one definition: envs.evaluation.task_search_params, whose rest heights are CEILING_GEOMETRY's)
+    return replace(task_search_params(task), settle_mm=ORACLE_PARAMS.settle_mm)
 
 
 def main(argv=None) -> int:
