@@ -54,7 +54,7 @@ from ..vision.vae import FrozenEncoder, VAEConfig, load_vae
 from .images import CollectConfig, collect_images, collection_key, default_image_dir
 
 __all__ = ["VisionPreset", "VISION_PRESETS", "load_or_make_encoder", "default_vae_dir", "untrained_preset_latent",
-           "load_or_make_probe", "default_probe_path"]
+           "load_or_make_probe", "default_probe_path", "PROBE_FITS"]
 
 
 @dataclass(frozen=True)
@@ -166,9 +166,18 @@ def load_or_make_encoder(task: str, preset: VisionPreset, cache_dir, device: str
                      "latent_dim": encoder.latent_dim}
 
 
-def default_probe_path(cache_dir, task: str, preset: VisionPreset, num_envs: int = 16) -> Path:
-    """cache/<task>/<the VAE's entry>/near_hole_probe_mlp_seed<S>.npz: the probe belongs to that VAE and its images."""
-    return default_vae_dir(cache_dir, task, preset, num_envs) / f"near_hole_probe_mlp_seed{preset.seed}.npz"
+# --vision-probe-fit: what the near-hole probe is fitted on. images: the VAE's image set's near-hole frames;
+# closed_loop: those and the camera controller's own frames (prepare.closed_loop)
+PROBE_FITS = ("images", "closed_loop")
+
+
+def default_probe_path(cache_dir, task: str, preset: VisionPreset, num_envs: int = 16, fit: str = "images") -> Path:
+    """cache/<task>/<the VAE's entry>/near_hole_probe_mlp[_closed_loop]_seed<S>.npz: the probe belongs to that VAE and
+    its images."""
+    if fit not in PROBE_FITS:
+        raise ValueError(f"probe fit {fit!r}; allowed: {', '.join(PROBE_FITS)}")
+    tag = "_closed_loop" if fit == "closed_loop" else ""
+    return default_vae_dir(cache_dir, task, preset, num_envs) / f"near_hole_probe_mlp{tag}_seed{preset.seed}.npz"
 
 
 _PROBE_ARRAYS = ("x_mean", "x_scale", "y_mean", "y_scale", "num_fit", "held_out_rmse_mm", "held_out_frames",
@@ -176,43 +185,40 @@ _PROBE_ARRAYS = ("x_mean", "x_scale", "y_mean", "y_scale", "num_fit", "held_out_
 
 
 def load_or_make_probe(task: str, preset: VisionPreset, cache_dir, encoder: FrozenEncoder, num_envs: int = 16,
-                       log=print, path=None):
+                       log=print, path=None, fit: str = "images", progress: bool = True):
     """The near-hole probe of the preset's VAE (--vision-probe-obs; tools/ceiling.py's camera estimate): an MLP
     (vision.probe.NearHoleRegressor) from the frozen encoder's latent to the fixed tip minus the held part in the
     image's frame, fitted on every near-hole frame of the VAE's own image set with the set's privileged geometry,
     as a pose estimator is trained in simulation. Made on first use under its cache entry's lock (seconds) and
     written atomically; returns (vision.probe.ProbeMLP on the CPU, its path, {"num_fit", "held_out_rmse_mm",
     "held_out_frames"}: the same model fitted on the set's training episodes and scored on its validation ones,
-    image axes x, y, z). `path`: a probe file to load as it is (a run's recorded one), never fitted."""
+    image axes x, y, z). `path`: a probe file to load as it is (a run's recorded one), never fitted.
+
+    fit "closed_loop" (--vision-probe-fit): fitted on the image set's frames and the camera controller's own
+    (prepare.closed_loop: that controller steering by this VAE's image-set probe, made first if missing, on 128
+    episodes of their own: ~5 min once per VAE); its held-out score is on the controller's frames instead: the
+    same model fitted on the image set's training episodes and the first CLOSED_LOOP_ROUNDS - 2 rounds, scored on
+    the near-hole frames of the last two rounds' episodes, with the image-set probe's score on those frames beside
+    it ("image_probe_rmse_mm")."""
     import numpy as np
 
-    from .._io import atomic_savez, load_npz
-    from ..vision.dataset import ImageSet
-    from ..vision.probe import NearHoleRegressor, ProbeMLP, near_hole_mask, relative_in_image
+    from .._io import load_npz
+    from ..vision.probe import ProbeMLP
 
     given = path is not None
-    path = Path(path) if given else default_probe_path(cache_dir, task, preset, num_envs)
+    path = Path(path) if given else default_probe_path(cache_dir, task, preset, num_envs, fit)
+    base = None
+    if fit == "closed_loop" and not given and not path.is_file():  # (its own lock: taken before this entry's)
+        base = load_or_make_probe(task, preset, cache_dir, encoder, num_envs, log, progress=progress)[0]
     with entry_lock(path, log=log, what=f"the {task} near-hole probe"):
         if not path.is_file() and not given:
-            images = ImageSet(default_image_dir(cache_dir, preset.collect_config(task, num_envs)),
-                              resolution=preset.resolution, task=task)
-            if not images.has_geometry:
-                raise ValueError(f"{images.dir}: the image set has no geometry (format 1): the probe cannot be fitted")
-            log(f"fitting the near-hole probe of the {task} VAE -> {path}")
-            z = np.concatenate([encoder(np.asarray(images.images[i:i + 256])).double().cpu().numpy()
-                                for i in range(0, len(images), 256)])  # the latents as the policy gets them
-            g = images.geometry.astype(np.float64)
-            train = images.split == 0
-            near_val = near_hole_mask(g[~train])
-            held_out = NearHoleRegressor(z[train], g[train], seed=preset.seed)
-            err = held_out(z[~train][near_val]) - relative_in_image(g[~train][near_val])
-            state = NearHoleRegressor(z, g, seed=preset.seed).state()
-            arrays = {k: state[k] for k in ("x_mean", "x_scale", "y_mean", "y_scale")}
-            arrays.update({f"w{i}": w for i, w in enumerate(state["weights"])})
-            arrays.update({f"b{i}": b for i, b in enumerate(state["biases"])})
-            atomic_savez(path, False, num_layers=np.array(len(state["weights"])), num_fit=np.array(state["num_fit"]),
-                         held_out_rmse_mm=1e3 * np.sqrt((err ** 2).mean(axis=0)),
-                         held_out_frames=np.array(int(near_val.sum())), **arrays)
+            z, g, train = _image_set_latents(task, preset, cache_dir, encoder, num_envs)
+            log(f"fitting the near-hole probe of the {task} VAE ({fit}) -> {path}")
+            if fit == "closed_loop":
+                _fit_closed_loop_probe(path, task, preset, cache_dir, encoder, base, z, g, train, num_envs, log,
+                                       progress)
+            else:
+                _fit_image_probe(path, preset, z, g, train)
     data = load_npz(path, "near-hole probe", _PROBE_ARRAYS)
     k = int(data["num_layers"])
     try:
@@ -223,8 +229,84 @@ def load_or_make_probe(task: str, preset: VisionPreset, cache_dir, encoder: Froz
         raise ValueError(f"{path}: not a near-hole probe ({type(e).__name__}: {e}); delete it to fit it again") from None
     if probe.latent_dim != encoder.latent_dim:
         raise ValueError(f"{path}: a probe of a {probe.latent_dim}-d latent, the VAE's is {encoder.latent_dim}-d")
-    return probe, path, {"num_fit": int(data["num_fit"]), "held_out_frames": int(data["held_out_frames"]),
-                         "held_out_rmse_mm": dict(zip("xyz", map(float, data["held_out_rmse_mm"])))}
+    record = {"num_fit": int(data["num_fit"]), "held_out_frames": int(data["held_out_frames"]),
+              "held_out_rmse_mm": dict(zip("xyz", map(float, data["held_out_rmse_mm"])))}
+    if "image_probe_rmse_mm" in data:  # a closed-loop probe: the image-set probe on the same held-out frames
+        record["image_probe_rmse_mm"] = dict(zip("xyz", map(float, data["image_probe_rmse_mm"])))
+        record["closed_loop_episodes"] = int(data["closed_loop_episodes"])
+    return probe, path, record
+
+
+def _image_set_latents(task: str, preset: VisionPreset, cache_dir, encoder: FrozenEncoder, num_envs: int):
+    """The VAE's image set as the probe sees it: latents (n, d_z) float64 (the encoder's mean, as the policy gets
+    them), geometry (n, 13) float64, and the training split (n,) bool."""
+    import numpy as np
+
+    from ..vision.dataset import ImageSet
+
+    images = ImageSet(default_image_dir(cache_dir, preset.collect_config(task, num_envs)),
+                      resolution=preset.resolution, task=task)
+    if not images.has_geometry:
+        raise ValueError(f"{images.dir}: the image set has no geometry (format 1): the probe cannot be fitted")
+    z = np.concatenate([encoder(np.asarray(images.images[i:i + 256])).double().cpu().numpy()
+                        for i in range(0, len(images), 256)])
+    return z, images.geometry.astype(np.float64), images.split == 0
+
+
+def _probe_errors(reg, z, g):
+    """(m, 3) errors, image axes, of the fitted regressor on the near-hole rows of (z, g) (m of them)."""
+    from ..vision.probe import near_hole_mask, relative_in_image
+
+    near = near_hole_mask(g)
+    return reg(z[near]) - relative_in_image(g[near])
+
+
+def _save_probe(path, reg, err, **extra) -> None:
+    import numpy as np
+
+    from .._io import atomic_savez
+
+    state = reg.state()
+    arrays = {k: state[k] for k in ("x_mean", "x_scale", "y_mean", "y_scale")}
+    arrays.update({f"w{i}": w for i, w in enumerate(state["weights"])})
+    arrays.update({f"b{i}": b for i, b in enumerate(state["biases"])})
+    atomic_savez(path, False, num_layers=np.array(len(state["weights"])), num_fit=np.array(state["num_fit"]),
+                 held_out_rmse_mm=1e3 * np.sqrt((err ** 2).mean(axis=0)), held_out_frames=np.array(len(err)),
+                 **extra, **arrays)
+
+
+def _fit_image_probe(path, preset: VisionPreset, z, g, train) -> None:
+    from ..vision.probe import NearHoleRegressor
+
+    err = _probe_errors(NearHoleRegressor(z[train], g[train], seed=preset.seed), z[~train], g[~train])
+    _save_probe(path, NearHoleRegressor(z, g, seed=preset.seed), err)
+
+
+def _fit_closed_loop_probe(path, task: str, preset: VisionPreset, cache_dir, encoder, base, z, g, train,
+                           num_envs: int, log, progress: bool) -> None:
+    import numpy as np
+
+    from ..vision.probe import NearHoleRegressor
+    from .closed_loop import CLOSED_LOOP_ROUNDS, CLOSED_LOOP_SEED, collect_closed_loop_frames
+
+    if base is None:  # (another run made the image-set probe between our check and this lock)
+        base = load_or_make_probe(task, preset, cache_dir, encoder, num_envs, log, progress=progress)[0]
+    with phase(f"preparing the vision prerequisites: the {task} camera controller's frames for the probe",
+               "nothing is written: the next run collects them again"):
+        frames = collect_closed_loop_frames(task, encoder, base, cache_dir, num_envs, CLOSED_LOOP_ROUNDS,
+                                            CLOSED_LOOP_SEED, log=log, progress=progress)
+    zc, gc, late = frames["z"], frames["geometry"], frames["round"] >= CLOSED_LOOP_ROUNDS - 2
+    held_out = NearHoleRegressor(np.concatenate([z[train], zc[~late]]), np.concatenate([g[train], gc[~late]]),
+                                 seed=preset.seed)
+    err = _probe_errors(held_out, zc[late], gc[late])
+    import torch
+
+    image_err = _probe_errors(lambda x: base(torch.as_tensor(x)).numpy(), zc[late], gc[late])  # (ProbeMLP: float64)
+    _save_probe(path, NearHoleRegressor(np.concatenate([z, zc]), np.concatenate([g, gc]), seed=preset.seed), err,
+                image_probe_rmse_mm=1e3 * np.sqrt((image_err ** 2).mean(axis=0)),
+                closed_loop_episodes=np.array(len(frames["success"])),
+                closed_loop_seed=np.array(CLOSED_LOOP_SEED),
+                closed_loop_success=np.array(float(frames["success"].mean())))
 
 
 def untrained_preset_latent(env, preset: str):

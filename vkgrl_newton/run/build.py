@@ -68,7 +68,7 @@ def build_probe(cfg: RunConfig, encoder, log=print):
     from ..prepare.vision import VISION_PRESETS, load_or_make_probe
 
     probe, path, record = load_or_make_probe(cfg.task, VISION_PRESETS[cfg.preset], cfg.cache_dir, encoder, log=log,
-                                             path=cfg.probe)
+                                             path=cfg.probe, fit=cfg.vision_probe_fit, progress=cfg.progress)
     log(f"near-hole probe loaded: {path} (held-out RMSE, image x / y / z: "
         + " / ".join(f"{v:.2f}" for v in record["held_out_rmse_mm"].values()) + " mm)")
     return probe

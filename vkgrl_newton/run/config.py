@@ -75,6 +75,9 @@ class RunConfig:
     # the vision methods: the near-hole probe's estimate of the held part over the hole (world x, y, from the latent;
     # prepare.vision.load_or_make_probe) appended to the latent (envs.camera_latent)
     vision_probe_obs: bool = False
+    # what that probe is fitted on (prepare.vision.PROBE_FITS): the VAE's image set (images), or that and the camera
+    # controller's own frames (closed_loop: prepare.closed_loop)
+    vision_probe_fit: str = "images"
     probe: Path | None = None  # its probe file: a resumed or evaluated run's recorded one (None: the cache's)
     ppo: dict | None = None  # rsl-rl's runner configuration (ppo methods)
     # the prior (kmp methods): your demonstrations or the scripted ones, the KMP's reference and
@@ -158,8 +161,8 @@ class RunConfig:
         missing: prepare.vision.load_or_make_probe)."""
         from ..prepare.vision import VISION_PRESETS, default_probe_path
 
-        return Path(self.probe) if self.probe is not None else default_probe_path(self.cache_dir, self.task,
-                                                                                 VISION_PRESETS[self.preset])
+        return Path(self.probe) if self.probe is not None else default_probe_path(
+            self.cache_dir, self.task, VISION_PRESETS[self.preset], fit=self.vision_probe_fit)
 
     def meta(self) -> dict:
         """What identifies a run; a resumed run must match it field by field. The learner's configuration:
@@ -188,6 +191,8 @@ class RunConfig:
                 meta[name] = True
         if self.obs_history:  # likewise
             meta["obs_history"] = self.obs_history
+        if self.vision_probe_fit != "images":  # likewise
+            meta["vision_probe_fit"] = self.vision_probe_fit
         if self.kgrl_recipe not in (None, "base"):  # absent for base, as in runs before recipes
             meta["kgrl_recipe"] = self.kgrl_recipe
         if self.method_row.vision:
@@ -230,6 +235,12 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "the cached VAE's latent through a near-hole probe fitted on the VAE's own images with their "
                          "privileged geometry (as a pose estimator is trained in simulation), world x, y. Not with "
                          "--vae. A deviation from eq. 5.6")
+    ap.add_argument("--vision-probe-fit", default=None, choices=("images", "closed_loop"),
+                    help="with --vision-probe-obs: what the near-hole probe is fitted on. images (default): the VAE's "
+                         "image set. closed_loop: that and the frames of the camera controller (--kgrl-base "
+                         "centre_latent's a = 0) steering by the image-set probe on 128 episodes of their own (eval "
+                         "seed 20000), labelled in simulation as DAgger does: the estimate is then trained where that "
+                         "controller steers by it. Made once per VAE (~5 min on a CPU core)")
     ap.add_argument("--obs-history", type=int, default=None, metavar="K",
                     help="the SAC methods: the policy's input carries its last K inputs and actions (zeros before the "
                          "episode began; envs.history), a feed-forward form of Factory's LSTM actor. 0 (default): none, "

@@ -104,6 +104,7 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      kgrl_residual_scale=meta.get("kgrl_residual_scale", 1.0),
                      tcp_velocity_obs=meta.get("tcp_velocity_obs", False),
                      force_obs=meta.get("force_obs", False), vision_probe_obs=meta.get("vision_probe_obs", False),
+                     vision_probe_fit=meta.get("vision_probe_fit", "images"),
                      probe=Path(meta["vision"]["probe"]) if "probe" in meta.get("vision", {}) else None,
                      sac=None, ppo=meta.get("ppo"), device=args.device, cache_dir=args.cache_dir, progress=True,
                      eager_physics=bool(args.eager_physics))

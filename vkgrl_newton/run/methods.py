@@ -90,7 +90,7 @@ OPTION_RULES = (
     ("--ppo", "uses_ppo"),
     ("--kgrl-recipe, --kgrl-time-action, --kgrl-base, --kgrl-residual-scale", "takes_recipe"),
     ("--demos, --num-demos, --kmp-reference, --kgrl-reach-floor[-z], --kgrl-seat-press", "uses_kmp"),
-    ("--vae, --vision-probe-obs", "vision"),
+    ("--vae, --vision-probe-obs, --vision-probe-fit", "vision"),
 )
 
 

@@ -31,7 +31,7 @@ _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
 _RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic",
                  "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history", "vision_probe_obs", "kgrl_base",
-                 "kgrl_residual_scale")
+                 "kgrl_residual_scale", "vision_probe_fit")
 
 
 @dataclass(frozen=True)
@@ -234,6 +234,9 @@ def _check_options(ns) -> None:
         raise ConfigError(f"--vae is for the vision methods ({names(vision=True)}), not {ns.method!r}")
     if ns.vision_probe_obs and not m.vision:
         raise ConfigError(f"--vision-probe-obs is for the vision methods ({names(vision=True)}), not {ns.method!r}")
+    if ns.vision_probe_fit not in (None, "images") and not ns.vision_probe_obs:
+        raise ConfigError(f"--vision-probe-fit {ns.vision_probe_fit} chooses the near-hole probe of --vision-probe-obs: "
+                          "add --vision-probe-obs (a vision method)")
     if ns.run_dir is not None and ns.run_dir.exists() and not ns.run_dir.is_dir():
         raise ConfigError(f"--run-dir {ns.run_dir} is a file; give a directory (new, or a run's with --resume)")
     for flag, path in (("--run-dir", ns.run_dir), ("--cache-dir", ns.cache_dir)):  # (the default run dir: runs/train)
@@ -367,7 +370,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
         kgrl_base=ns.kgrl_base or "prior", kgrl_residual_scale=float(ns.kgrl_residual_scale or 1.0),
         tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs), obs_history=int(ns.obs_history or 0),
-        vision_probe_obs=bool(ns.vision_probe_obs), probe=ns.probe,
+        vision_probe_obs=bool(ns.vision_probe_obs), vision_probe_fit=ns.vision_probe_fit or "images", probe=ns.probe,
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,
         sac=ns.sac_config, ppo=ns.ppo_cfg, demos=ns.demos, num_demos=ns.num_demos, kmp_reference=reference,
         kmp_params=kmp_params, vae=ns.vae, total_steps=ns.total_steps,

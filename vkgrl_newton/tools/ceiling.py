@@ -376,7 +376,7 @@ def build(task: str, num_envs: int, cache_dir: str, seed: int = 0):
     return env, tables, demos
 
 
-def latent_lateral(env, task: str, cache_dir: str):
+def latent_lateral(env, task: str, cache_dir: str, fit: str = "images"):
     """The camera's estimate of the lateral error (envs.camera_latent.LatentLateral) and what it came from: the quick
     preset's VAE of `task` and its near-hole probe (prepare.vision.load_or_make_probe), made on first use as a vision
     run with --vision-probe-obs makes them: the same estimate that option gives the policy."""
@@ -385,7 +385,7 @@ def latent_lateral(env, task: str, cache_dir: str):
 
     preset = VISION_PRESETS["quick"]
     encoder, info = load_or_make_encoder(task, preset, cache_dir, "cpu")
-    probe, path, record = load_or_make_probe(task, preset, cache_dir, encoder)
+    probe, path, record = load_or_make_probe(task, preset, cache_dir, encoder, fit=fit)
     return LatentLateral(env, encoder, probe), {**info, "probe": str(path), **record}
 
 
@@ -463,6 +463,8 @@ def main(argv=None) -> int:
     ap.add_argument("--oracle-lateral-noise-mm", type=nonnegative_float, default=0.0, metavar="SIGMA",
                     help="the oracle steers by the lateral error plus a bias drawn N(0, SIGMA^2) mm per axis at each "
                          "episode's start (seeded by --seed): what an estimate of the hole that good allows")
+    ap.add_argument("--probe-fit", default="images", choices=("images", "closed_loop"),
+                    help="the latent controllers: the near-hole probe's fit (train/run.py's --vision-probe-fit)")
     ap.add_argument("--cache-dir", default="runs/cache")
     ap.add_argument("--json", type=Path, required=True,
                     help="output, a new file (never overwritten; rewritten after each controller of this run)")
@@ -490,7 +492,7 @@ def main(argv=None) -> int:
     out = {"task": args.task, "env": "factory", "action_dim": 4, "num_envs": args.num_envs,
            "episodes_per_world": args.episodes_per_world, "eval_seed": args.eval_seed, "seed": args.seed,
            "perturb_kp_ulp": args.perturb_kp_ulp, "demos_kp_ulp": args.demos_kp_ulp,
-           "oracle_lateral_noise_mm": args.oracle_lateral_noise_mm, "demos": str(demos), "cpu": cpu,
+           "oracle_lateral_noise_mm": args.oracle_lateral_noise_mm, "probe_fit": args.probe_fit, "demos": str(demos), "cpu": cpu,
            "command": "python -m "
            "vkgrl_newton.tools.ceiling " + " ".join(sys.argv[1:] if argv is None else argv),
            "thresholds_mm": {"catch": 1e3 * CEILING_GEOMETRY[args.task].catch,
@@ -500,7 +502,7 @@ def main(argv=None) -> int:
            "controllers": {}}
     estimate = None
     if set(args.controllers) & set(LATENT_CONTROLLERS):
-        estimate, out["latent"] = latent_lateral(env, args.task, args.cache_dir)
+        estimate, out["latent"] = latent_lateral(env, args.task, args.cache_dir, args.probe_fit)
         print(f"{args.task}: the camera's lateral estimate, probe held-out RMSE {out['latent']['held_out_rmse_mm']} mm "
               f"(image axes, {out['latent']['held_out_frames']} frames)", flush=True)
     for name in args.controllers:
