@@ -134,18 +134,29 @@ def test_closed_loop_frames_are_the_states_the_camera_controller_steps_from(wp_c
         attach(source)
 
     monkeypatch.setattr(env, "attach_vision", attach_and_copy)
-    frames = collect_closed_loop_frames("PegInsert", encoder, probe, None, rounds=1, eval_seed=7, env=env,
+    successes = []
+    metrics = env.episode_metrics
+
+    def recording_metrics(mask):  # the env's own per-world outcome at each time-out
+        out = metrics(mask)
+        successes.append(list(out["world_success"]))
+        return out
+
+    monkeypatch.setattr(env, "episode_metrics", recording_metrics)
+    frames = collect_closed_loop_frames("PegInsert", encoder, probe, None, rounds=2, eval_seed=7, env=env,
                                         tables=prior_tables(), log=lambda *a: None, progress=False)
     T, E = env.max_episode_length, env.num_envs
-    assert frames["z"].shape == (T * E, 4) and frames["geometry"].shape == (T * E, 13)
-    assert len(seen) == T and np.all(frames["round"] == 0) and frames["success"].shape == (E,)
-    held = torch.stack([s[0] for s in seen]).reshape(T * E, 3).numpy()
-    tip = torch.stack([s[1] for s in seen]).reshape(T * E, 3).numpy()
+    n = 2 * T * E
+    assert frames["z"].shape == (n, 4) and frames["geometry"].shape == (n, 13) and len(seen) == 2 * T
+    np.testing.assert_array_equal(frames["round"], np.repeat([0, 1], T * E))
+    np.testing.assert_array_equal(frames["success"], np.asarray(successes, np.float64).reshape(-1) == 1.0)
+    held = torch.stack([s[0] for s in seen]).reshape(n, 3).numpy()
+    tip = torch.stack([s[1] for s in seen]).reshape(n, 3).numpy()
     np.testing.assert_array_equal(frames["geometry"][:, 0:3], held)
     np.testing.assert_array_equal(frames["geometry"][:, 3:6], tip)
-    np.testing.assert_array_equal(frames["geometry"][:, 6:13], torch.stack([s[3] for s in seen]).reshape(T * E, 7))
+    np.testing.assert_array_equal(frames["geometry"][:, 6:13], torch.stack([s[3] for s in seen]).reshape(n, 7))
     # the latent of the state (the same float32 encoder on the same image: equal but for the batch's summation order)
-    z = torch.stack([s[2] for s in seen]).reshape(T * E, 4).numpy()
+    z = torch.stack([s[2] for s in seen]).reshape(n, 4).numpy()
     np.testing.assert_allclose(frames["z"], z, rtol=0, atol=1e-5)
     assert np.ptp(frames["geometry"][:, 0], axis=0) > 1e-3  # the controller moved the part: not one state repeated
 

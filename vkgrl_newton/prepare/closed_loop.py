@@ -61,6 +61,9 @@ def collect_closed_loop_frames(task: str, encoder, probe, cache_dir, num_envs: i
     obs = env.get_observations()
     bar = tqdm(total=rounds * env.max_episode_length, disable=not progress, desc="closed-loop frames", unit="step")
     for k in range(rounds):
+        if bool((env.episode_length_buf != 0).any()):  # a world that blew up was reset alone: its clock is off the
+            env.reset()  # others', and a round must be one episode in every world (the rest of this seed's draws move)
+            obs = env.get_observations()
         while True:
             latent = env.current_vision_latent()[:, :-LATERAL_DIM]
             hand = env.hand_pose()
@@ -70,7 +73,7 @@ def collect_closed_loop_frames(task: str, encoder, probe, cache_dir, num_envs: i
             round_of.append(torch.full((env.num_envs,), k))
             obs, _, _, extras = policy.step(env, obs)
             bar.update()
-            if "episode" in extras:  # every world's episode ends at the time-out together
+            if "episode" in extras:  # the time-out ends every world's episode together (a blown world's alone: NaN)
                 # (NaN: a world that blew up mid-episode, not counted: not a success)
                 success.append(np.asarray(extras["episode"]["world_success"], np.float64) == 1.0)
                 break
@@ -81,9 +84,3 @@ def collect_closed_loop_frames(task: str, encoder, probe, cache_dir, num_envs: i
         f"camera controller seated {int(out['success'].sum())}")
     return out
 
-
-def near_hole_rows(frames: dict) -> np.ndarray:
-    """(n,) bool: the frames' near-hole rows (vision.probe.near_hole_mask), the ones a probe is fitted on."""
-    from ..vision.probe import near_hole_mask
-
-    return near_hole_mask(frames["geometry"])

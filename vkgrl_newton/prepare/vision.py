@@ -289,7 +289,7 @@ def _fit_closed_loop_probe(path, task: str, preset: VisionPreset, cache_dir, enc
     from ..vision.probe import NearHoleRegressor
     from .closed_loop import CLOSED_LOOP_ROUNDS, CLOSED_LOOP_SEED, collect_closed_loop_frames
 
-    if base is None:  # (another run made the image-set probe between our check and this lock)
+    if base is None:  # (the closed-loop file existed at our first check and was removed before this lock)
         base = load_or_make_probe(task, preset, cache_dir, encoder, num_envs, log, progress=progress)[0]
     with phase(f"preparing the vision prerequisites: the {task} camera controller's frames for the probe",
                "nothing is written: the next run collects them again"):
@@ -301,7 +301,9 @@ def _fit_closed_loop_probe(path, task: str, preset: VisionPreset, cache_dir, enc
     err = _probe_errors(held_out, zc[late], gc[late])
     import torch
 
-    image_err = _probe_errors(lambda x: base(torch.as_tensor(x)).numpy(), zc[late], gc[late])  # (ProbeMLP: float64)
+    # (ProbeMLP, float64; on the encoder's device: the collection's CameraLatent moved it there in place)
+    image_err = _probe_errors(lambda x: base(torch.as_tensor(x, device=base.x_mean.device)).cpu().numpy(), zc[late],
+                              gc[late])
     _save_probe(path, NearHoleRegressor(np.concatenate([z, zc]), np.concatenate([g, gc]), seed=preset.seed), err,
                 image_probe_rmse_mm=1e3 * np.sqrt((image_err ** 2).mean(axis=0)),
                 closed_loop_episodes=np.array(len(frames["success"])),

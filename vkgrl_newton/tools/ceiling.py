@@ -492,7 +492,7 @@ def main(argv=None) -> int:
     out = {"task": args.task, "env": "factory", "action_dim": 4, "num_envs": args.num_envs,
            "episodes_per_world": args.episodes_per_world, "eval_seed": args.eval_seed, "seed": args.seed,
            "perturb_kp_ulp": args.perturb_kp_ulp, "demos_kp_ulp": args.demos_kp_ulp,
-           "oracle_lateral_noise_mm": args.oracle_lateral_noise_mm, "probe_fit": args.probe_fit, "demos": str(demos), "cpu": cpu,
+           "oracle_lateral_noise_mm": args.oracle_lateral_noise_mm, "demos": str(demos), "cpu": cpu,
            "command": "python -m "
            "vkgrl_newton.tools.ceiling " + " ".join(sys.argv[1:] if argv is None else argv),
            "thresholds_mm": {"catch": 1e3 * CEILING_GEOMETRY[args.task].catch,
@@ -503,6 +503,7 @@ def main(argv=None) -> int:
     estimate = None
     if set(args.controllers) & set(LATENT_CONTROLLERS):
         estimate, out["latent"] = latent_lateral(env, args.task, args.cache_dir, args.probe_fit)
+        out["probe_fit"] = args.probe_fit
         print(f"{args.task}: the camera's lateral estimate, probe held-out RMSE {out['latent']['held_out_rmse_mm']} mm "
               f"(image axes, {out['latent']['held_out_frames']} frames)", flush=True)
     for name in args.controllers:
