@@ -8,6 +8,7 @@ controller's state (the step it was found blocked, whether the part dropped). Pe
 
     python docs/results/probe_closed_loop_40/record.py --eval-seed 20000 --rounds 8 --out runs/probe_cl/train_20000.npz
     [--probe P.npz]  (another probe file in place of the cache's: the refitted one)
+    [--push-mm P]    (the settled press below the prior's z, in place of the ceiling's 3 mm)
 """
 import argparse
 import json
@@ -24,6 +25,8 @@ def main():
     ap.add_argument("--rounds", type=int, default=8)
     ap.add_argument("--num-envs", type=int, default=16)
     ap.add_argument("--probe", type=Path, default=None)
+    ap.add_argument("--push-mm", type=float, default=None, help="the settled press below the prior's z (default: the "
+                    "ceiling's ORACLE_PUSH_MM, 3)")
     ap.add_argument("--cache-dir", default="runs/cache")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
@@ -70,11 +73,13 @@ def main():
     estimate = Logged(env, encoder, probe)
     policy = ceiling.make_controller("centre_latent", env, tables, task, 0, 0.0, estimate)
     estimate.policy = policy
+    if args.push_mm is not None:
+        policy.push_mm = float(args.push_mm)
     records, wall = ceiling.run_controller(env, policy, args.rounds, args.eval_seed, task)
     arrays = {k: np.stack(v) for k, v in log.items()}  # (T, E, ...)
     success = np.array([r["success"] for r in records])
     np.savez_compressed(args.out, success=success, **arrays)
-    meta = {"eval_seed": args.eval_seed, "rounds": args.rounds, "num_envs": args.num_envs, "probe": str(probe_path),
+    meta = {"eval_seed": args.eval_seed, "push_mm": policy.push_mm, "rounds": args.rounds, "num_envs": args.num_envs, "probe": str(probe_path),
             "success": float(success.mean()), "n_success": int(success.sum()), "episodes": len(records),
             "wall_s": round(wall, 1), "cpu": cpu_model(), "records": records}
     args.out.with_suffix(".json").write_text(json.dumps(meta, indent=1))
