@@ -9,6 +9,7 @@ controller's state (the step it was found blocked, whether the part dropped). Pe
     python docs/results/probe_closed_loop_40/record.py --eval-seed 20000 --rounds 8 --out runs/probe_cl/train_20000.npz
     [--probe P.npz]  (another probe file in place of the cache's: the refitted one)
     [--push-mm P]    (the settled press below the prior's z, in place of the ceiling's 3 mm)
+    [--seat-press-mm S]  (the prior's tables pressed S mm below its seat from the seat on)
 """
 import argparse
 import json
@@ -27,6 +28,9 @@ def main():
     ap.add_argument("--probe", type=Path, default=None)
     ap.add_argument("--push-mm", type=float, default=None, help="the settled press below the prior's z (default: the "
                     "ceiling's ORACLE_PUSH_MM, 3)")
+    ap.add_argument("--seat-press-mm", type=float, default=0.0, help="the prior's tables pressed this far below its "
+                    "seat from the seat on (kmp.tables.with_seat_press, --kgrl-seat-press's), for a part that goes in "
+                    "without being blocked")
     ap.add_argument("--cache-dir", default="runs/cache")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
@@ -45,6 +49,8 @@ def main():
 
     task = "PegInsert"
     env, tables, _ = ceiling.build(task, args.num_envs, args.cache_dir, 0)
+    if args.seat_press_mm:
+        tables = ceiling.pushed_prior(tables, 1e-3 * args.seat_press_mm)
     preset = VISION_PRESETS["quick"]
     encoder, _ = load_or_make_encoder(task, preset, args.cache_dir, "cpu")
     probe, probe_path, _ = load_or_make_probe(task, preset, args.cache_dir, encoder, path=args.probe)
@@ -79,7 +85,7 @@ def main():
     arrays = {k: np.stack(v) for k, v in log.items()}  # (T, E, ...)
     success = np.array([r["success"] for r in records])
     np.savez_compressed(args.out, success=success, **arrays)
-    meta = {"eval_seed": args.eval_seed, "push_mm": policy.push_mm, "rounds": args.rounds, "num_envs": args.num_envs, "probe": str(probe_path),
+    meta = {"eval_seed": args.eval_seed, "push_mm": policy.push_mm, "seat_press_mm": args.seat_press_mm, "rounds": args.rounds, "num_envs": args.num_envs, "probe": str(probe_path),
             "success": float(success.mean()), "n_success": int(success.sum()), "episodes": len(records),
             "wall_s": round(wall, 1), "cpu": cpu_model(), "records": records}
     args.out.with_suffix(".json").write_text(json.dumps(meta, indent=1))
