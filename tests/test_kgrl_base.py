@@ -204,8 +204,9 @@ def test_the_option_is_recorded_refused_where_it_cannot_hold_and_rebuilt_by_eval
         run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-reach-floor-z", "0")
     assert run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-recipe", "base", "--kgrl-reach-floor-z",
                "25").reach_floor_z_mm == 25.0
-    with pytest.raises(ConfigError, match="with --kgrl-seat-press"):
-        run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-seat-press", "3")
+    # a base with the prior's seat pressed (a part that goes in unblocked is the prior's): accepted, recorded
+    pressed = run("--method", "kgrl", "--kgrl-base", "centre_search", "--kgrl-seat-press", "5")
+    assert pressed.seat_press_mm == 5.0 and pressed.kgrl_base == "centre_search"
     # the parser's choices are the controllers' (the command line parses before torch loads: a literal there)
     from vkgrl_newton.envs.evaluation import BASE_CONTROLLERS
 
@@ -287,3 +288,23 @@ def test_the_prior_evaluation_a_run_reuses_is_its_own_bases(tmp_path):
         prior_evaluation_key(RunConfig(method="kgrl"), env, path)
     probe.write_bytes(b"another probe")
     assert prior_evaluation_key(RunConfig(kgrl_base="centre_latent", **common), env, path) != keys["centre_latent"]
+
+
+def test_a_base_on_a_pressed_prior_steers_and_settles_on_the_pressed_tables(wp_cpu):
+    """--kgrl-seat-press with a base: the base's a = 0 and its settled z are the pressed prior's (kmp.tables.
+    with_seat_press, the path's own tables): its mean is the pressed mean, its seat the pressed seat, and its settled
+    z ORACLE_PUSH_MM under the pressed z."""
+    from vkgrl_newton.envs.evaluation import ORACLE_PUSH_MM, base_controller
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
+    from vkgrl_newton.kmp.tables import with_seat_press
+
+    tables = prior_tables()
+    env = fake_env(2)
+    path = KGRLActionPath(tables, env, reach_floor=3e-3, reach_floor_z=25e-3, seat_press=5e-3)
+    base = base_controller("centre_search", path, "PegInsert")
+    want = with_seat_press(tables, 5e-3).mean.to(torch.float64)
+    torch.testing.assert_close(base.mean, want, rtol=0, atol=0)
+    assert base.seat_z == float(want[-1, 2]) and float(tables.mean[-1, 2]) - base.seat_z == pytest.approx(5e-3, abs=1e-6)
+    m = base.mean[-1:, :3]
+    z = base._settled_z(env, torch.zeros(1, 3, dtype=torch.float64), m)
+    assert float(z) == pytest.approx(float(want[-1, 2]) - 1e-3 * ORACLE_PUSH_MM, abs=1e-12)
