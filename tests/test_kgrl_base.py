@@ -304,6 +304,8 @@ def test_a_base_on_a_pressed_prior_steers_and_settles_on_the_pressed_tables(wp_c
     base = base_controller("centre_search", path, "PegInsert")
     want = with_seat_press(tables, 5e-3).mean.to(torch.float64)
     torch.testing.assert_close(base.mean, want, rtol=0, atol=0)
+    # (seat_z is the same float64 read of the same float32 entry: exact. The press: a difference of two float32 z's
+    # of ~0.05 m, each rounded to ~4e-9 m; 1e-6 is far outside that and far inside a wrong press's millimetres)
     assert base.seat_z == float(want[-1, 2]) and float(tables.mean[-1, 2]) - base.seat_z == pytest.approx(5e-3, abs=1e-6)
     m = base.mean[-1:, :3]
     z = base._settled_z(env, torch.zeros(1, 3, dtype=torch.float64), m)
