@@ -48,7 +48,15 @@ def test_collect_images_end_to_end(peg_env, tmp_path):
 
     cfg = CollectConfig(num_images=30, resolution=32, frame_stride=4, episode_steps=8, val_fraction=0.25,
                         scripted_fraction=0.5)
-    out = collect_images(cfg, tmp_path / "set", progress=False, log=lambda *_: None, env=peg_env)
+    # the shared env's start draws, seeded here: the episodes (and so the pixel counts below) are then
+    # the same whichever tests ran before on it (a subset run drew other starts and a part fell under
+    # 10 pixels); the generator's state is given back for the tests after
+    drawn = peg_env.generator.get_state()
+    peg_env.generator.manual_seed(0)
+    try:
+        out = collect_images(cfg, tmp_path / "set", progress=False, log=lambda *_: None, env=peg_env)
+    finally:
+        peg_env.generator.set_state(drawn)
     s = ImageSet(out, resolution=32, task="PegInsert")
     assert len(s) == 30 and s.images.shape == (30, 32, 32, 3) and s.images.dtype == np.uint8
     # 4 worlds, 2 frames per round (steps 0 and 4 of 8): rounds 0..3, the last one partial
@@ -72,7 +80,10 @@ def test_collect_images_end_to_end(peg_env, tmp_path):
     # a float32 unit quaternion: each component within 1 ulp (6e-8) of exact, the norm within ~4 ulps
     np.testing.assert_allclose(np.linalg.norm(g[:, 9:13], axis=1), 1.0, atol=1e-6)
     seen = np.isfinite(p[:, 0]) & np.isfinite(p[:, 6])
-    assert seen.mean() > 0.8 and (p[seen][:, [2, 8]] > 10).all()  # both parts cover some pixels
+    # both parts cover some pixels: at 32 px the fixed part's smallest frame covers 7-16 pixels and the
+    # median frame 20-23 over eight other start draws (held part: 16-18, 18-20), so the bounds are loose
+    assert seen.mean() > 0.8 and (p[seen][:, [2, 8]] >= 5).all()
+    assert (np.median(p[seen][:, [2, 8]], axis=0) > 12).all()
     rot = Rotation.from_quat(g[seen, 9:13])
     fixed_w = g[seen, 6:9] + rot.apply(p[seen, 3:6])
     held_w = g[seen, 6:9] + rot.apply(p[seen, 9:12])
