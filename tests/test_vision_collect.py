@@ -80,9 +80,9 @@ def test_collect_images_end_to_end(peg_env, tmp_path):
     # a float32 unit quaternion: each component within 1 ulp (6e-8) of exact, the norm within ~4 ulps
     np.testing.assert_allclose(np.linalg.norm(g[:, 9:13], axis=1), 1.0, atol=1e-6)
     seen = np.isfinite(p[:, 0]) & np.isfinite(p[:, 6])
-    # both parts cover some pixels: at 32 px the fixed part's smallest frame covers 7-16 pixels and the
-    # median frame 20-23 over eight other start draws (held part: 16-18, 18-20), so the bounds are loose
-    assert seen.mean() > 0.8 and (p[seen][:, [2, 8]] >= 5).all()
+    # both parts cover some pixels in every frame (these seeded draws: the fixed part's smallest frame 13
+    # pixels, the held part's 18; other draws go down to 7, hence the seed above) and ~20 in the median frame
+    assert seen.mean() > 0.8 and (p[seen][:, [2, 8]] > 10).all()
     assert (np.median(p[seen][:, [2, 8]], axis=0) > 12).all()
     rot = Rotation.from_quat(g[seen, 9:13])
     fixed_w = g[seen, 6:9] + rot.apply(p[seen, 3:6])
