@@ -63,7 +63,7 @@ RUN_PY_CASES = [
       "base"], "--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs z reach"),
     (["--sac", "prior_rollouts_policy=search", "--kgrl-reach-floor-z", "0"],  # the recipe's z floor taken away
      "--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs z reach"),
-    (["--kgrl-recipe", "fast"], "argument --kgrl-recipe: invalid choice: 'fast' (choose from 'base', 'reach_keep_prior')"),
+    (["--kgrl-recipe", "fast"], "argument --kgrl-recipe: invalid choice: 'fast' (choose from 'base', 'reach_keep_prior', 'residual')"),
     (["--kgrl-recipe", "base", "--method", "sac"], "--kgrl-recipe is for the kgrl methods on SAC (kgrl, vision_kgrl)"),
     (["--kgrl-recipe", "base", "--method", "kgrl_ppo"], "--kgrl-recipe is for the kgrl methods on SAC"),
     (["--seed", "-1"], "--seed -1: must be in [0, 2**32)"),

@@ -238,13 +238,16 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
 
     run_dir = tmp_path / "base"
     tiny = [*TINY_RUN, "--cpu-matmul", "torch"]
-    argv = ["--method", "kgrl", "--kgrl-base", "centre_search", "--run-dir", str(run_dir), "--eval-episodes", "0",
+    # the base through the residual recipe (its options filled in by resolve, as the test below checks)
+    argv = ["--method", "kgrl", "--kgrl-recipe", "residual", "--run-dir", str(run_dir), "--eval-episodes", "0",
             "--cache-dir", str(tmp_path / "cache"), "--num-demos", "2", *tiny]
     assert load_script("run").main([*argv, "--total-steps", "16"]) == 0
-    assert json.loads((run_dir / "config.json").read_text())["kgrl_base"] == "centre_search"
-    # a resume keeps the run's base (given again or not) and refuses another
+    config = json.loads((run_dir / "config.json").read_text())
+    assert (config["kgrl_base"], config["kgrl_residual_scale"], config["kgrl_recipe"]) == ("centre_search", 0.2,
+                                                                                          "residual")
+    # a resume keeps the run's base and recipe (given again or not) and refuses another
     assert load_script("run").main(["--resume", "--run-dir", str(run_dir), "--total-steps", "32", "--no-progress"]) == 0
-    assert json.loads((run_dir / "config.json").read_text())["kgrl_base"] == "centre_search"
+    assert json.loads((run_dir / "config.json").read_text()) == {**config, "total_steps": 32}
     with pytest.raises(SystemExit) as refused:
         load_script("run").main(["--resume", "--run-dir", str(run_dir), "--kgrl-base", "prior", "--total-steps", "48",
                                  "--no-progress"])
@@ -254,6 +257,58 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
                                          "--episodes", "1", "--device", "cpu", "--json", str(out),
                                          "--cache-dir", str(tmp_path / "cache")]) == 0
     assert json.loads(out.read_text())["episodes"] == 2
+
+
+def test_the_residual_recipe_is_the_measured_options_and_gives_way_to_given_ones(tmp_path):
+    """--kgrl-recipe residual (run.presets): the RunConfig of docs/results/base_floor4_40's arms, which gave the
+    options one by one on reach_keep_prior, but for the recipe's name; an option given wins, one whose prerequisite is
+    given otherwise is left out, what cannot go with the recipe is refused naming it; the gym id's config is run.py's."""
+    import dataclasses
+
+    from vkgrl_newton.run.config import ConfigError, build_parser
+    from vkgrl_newton.run.gym import gym_config
+    from vkgrl_newton.run.resolve import resolve
+
+    def run(*argv):
+        return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r"), "--cpu-matmul",
+                                        "torch", "--cache-dir", str(tmp_path)]).config
+
+    floors = ["--kgrl-residual-scale", "0.2", "--kgrl-seat-press", "5", "--kgrl-reach-floor", "4"]
+    measured = {"kgrl": ["--kgrl-base", "centre_search", *floors],
+                "vision_kgrl": ["--vision-probe-obs", "--vision-probe-fit", "closed_loop", "--kgrl-base", "centre_latent",
+                                *floors]}
+    for method, options in measured.items():
+        recipe = run("--method", method, "--kgrl-recipe", "residual")
+        by_hand = run("--method", method, *options)
+        assert (recipe.kgrl_recipe, by_hand.kgrl_recipe) == ("residual", "reach_keep_prior")
+        assert dataclasses.replace(recipe, kgrl_recipe="reach_keep_prior") == by_hand, method
+        assert recipe.meta()["kgrl_recipe"] == "residual" and recipe.reach_floor_z_mm == 25.0
+        kw = {f: getattr(recipe, f) for f in ("kgrl_base", "kgrl_residual_scale", "vision_probe_obs",
+                                              "vision_probe_fit", "seat_press_mm", "reach_floor_mm", "reach_floor_z_mm",
+                                              "kgrl_recipe", "latent_dim", "obs_dim")}
+        gym = gym_config("PegInsert", "factory", 4, method, device="cpu", cache_dir=tmp_path, kgrl_recipe="residual")
+        assert {f: getattr(gym, f) for f in kw} == kw, method
+    assert run("--method", "vision_kgrl", "--kgrl-recipe", "residual").kgrl_base == "centre_latent"
+    # given options win; a residual scale without a base, or a probe fit without the probe, is not filled in
+    on_prior = run("--method", "vision_kgrl", "--kgrl-recipe", "residual", "--kgrl-base", "prior")
+    assert (on_prior.kgrl_base, on_prior.kgrl_residual_scale, on_prior.vision_probe_obs) == ("prior", 1.0, True)
+    assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-residual-scale", "0.5",
+               "--kgrl-reach-floor", "3").kgrl_residual_scale == 0.5
+    assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-reach-floor", "3").reach_floor_mm == 3.0
+    # the other recipes set no run options: the quick default and the thesis's, as before
+    plain = run("--method", "vision_kgrl")
+    assert (plain.kgrl_recipe, plain.kgrl_base, plain.vision_probe_obs, plain.seat_press_mm) == \
+        ("reach_keep_prior", "prior", False, 0.0)
+    assert run("--method", "kgrl", "--preset", "thesis").kgrl_base == "prior"
+    for argv, message in ((["--method", "vision_kgrl", "--kgrl-recipe", "residual", "--vae", str(tmp_path / "v.pt")],
+                           "--vae with --kgrl-recipe residual: "),
+                          (["--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-time-action", "2"],
+                           "--kgrl-time-action with --kgrl-recipe residual: ")):
+        with pytest.raises(ConfigError, match=message) as e:
+            run(*argv)
+        assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="vae with the KGRL recipe residual"):
+        gym_config("PegInsert", "factory", 4, "vision_kgrl", device="cpu", vae=tmp_path / "v.pt", kgrl_recipe="residual")
 
 
 def test_the_prior_evaluation_a_run_reuses_is_its_own_bases(tmp_path):

@@ -263,10 +263,13 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "base's (ResiP's residual scale: a bounded correction, smaller exploration around the base). "
                          "Default 1")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
-                    help=f"{names(takes_recipe=True)}: the defaults under --sac and the reach floors: reach_keep_prior "
-                         "(the quick preset's: beats the prior on paired episodes, docs/results.md) or base (the "
-                         "thesis preset's: the thesis's null space; the quick default until issue 28). Default: "
-                         "the preset's, or on --resume the run's")
+                    help=f"{names(takes_recipe=True)}: the defaults under --sac, the reach floors and the seat press: "
+                         "reach_keep_prior (the quick preset's: beats the prior on paired episodes, docs/results.md), "
+                         "base (the thesis preset's: the thesis's null space; the quick default until issue 28) or "
+                         "residual (reach_keep_prior's learner on a fixed controller as a = 0, scaled 0.2, with 4 mm "
+                         "floors and the seat pressed 5 mm: --kgrl-base centre_search for kgrl, centre_latent with "
+                         "--vision-probe-obs --vision-probe-fit closed_loop for vision_kgrl; options given win; "
+                         "docs/results/base_floor4_40). Default: the preset's, or on --resume the run's")
     ap.add_argument("--ppo", metavar="KEY=VALUE", action="append", default=[],
                     help="ppo methods: override an rsl-rl PPO setting by its dotted path, e.g. --ppo "
                          "num_steps_per_env=32 --ppo algorithm.learning_rate=3e-4 (default: Isaac Lab Factory's, "

@@ -21,7 +21,7 @@ from .._io import output_path_error
 from ..envs.vector import RENDER_MODES, AssemblySingleEnv, AssemblyVectorEnv, check_vector_kwargs
 from .config import ConfigError, RunConfig
 from .methods import METHODS
-from .presets import DEFAULT_KGRL_RECIPE, KGRL_RECIPES, NO_RECIPE
+from .presets import DEFAULT_KGRL_RECIPE, KGRL_RECIPES, NO_RECIPE, recipe_options
 
 __all__ = ["make_vec_env", "make_env", "gym_config", "KWARGS"]
 
@@ -68,10 +68,16 @@ def gym_config(task: str = "PegInsert", family: str = "factory", action_dim: int
     preset = preset or ("thesis" if str(device).startswith("cuda") else "quick")
     recipe_name = (kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]) if row.takes_recipe else None
     recipe = KGRL_RECIPES[recipe_name] if recipe_name else NO_RECIPE
+    options = recipe_options(recipe, method)  # the recipe's run options: a = 0's base controller, the probe's input
+    if options.get("vision_probe_obs") and vae is not None:
+        raise ValueError(f"vae with the KGRL recipe {recipe_name}: its env reads the near-hole probe fitted on the cached "
+                         "VAE's own image set, which a given vae does not come with; leave out vae, or give "
+                         "kgrl_recipe='reach_keep_prior'")
     cfg = RunConfig(task=task, method=method, env=family, action_dim=int(action_dim), seed=seed,
                     num_envs=int(num_envs), preset=preset, geometry=geometry, kgrl_recipe=recipe_name,
                     demos=Path(demos) if demos is not None else None, vae=Path(vae) if vae is not None else None,
                     reach_floor_mm=float(recipe["reach_floor_mm"]), reach_floor_z_mm=float(recipe["reach_floor_z_mm"]),
+                    seat_press_mm=float(recipe.get("seat_press_mm", 0.0)), **options,
                     device=device, cache_dir=Path(cache_dir), progress=False)
     _check_files(cfg)
     return cfg

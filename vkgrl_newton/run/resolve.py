@@ -22,7 +22,7 @@ from ..tasks import geometry_error
 from .config import (RUN_FILES, ConfigError, RunConfig, check_scalars, default_run_dir, explicit_args, kgrl_recipe,
                      parse_sac_overrides, prior_table_flags, sac_config_for, search_without_z_reach, unavailable)
 from .methods import METHODS, names
-from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, PPO_RUNNER_ONLY, RUN_DEFAULTS
+from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, KGRL_RECIPES, PPO_RUNNER_ONLY, RUN_DEFAULTS, recipe_options
 
 __all__ = ["resolve", "Resolved", "Done", "without_file_records", "check_demos_file", "check_vae_file"]
 
@@ -60,8 +60,9 @@ def resolve(parser, argv, torch_threads: int | None = None) -> Resolved | Done:
         payload = _from_checkpoint(ns, explicit_args(_fresh_parser(parser), argv))
         if isinstance(payload, Done):
             return payload
-    _check_options(ns)
     provisional = ns.preset or ("thesis" if (ns.device or "").startswith("cuda") else "quick")
+    ns.recipe_filled = _fill_recipe_options(ns, provisional)
+    _check_options(ns)
     checked = _check_sac_options(ns, provisional)
     if (reason := unavailable(ns)) is not None:  # (imports the env's module: the heavy part starts here)
         return Done(f"train/run.py: {reason}", 2)
@@ -156,6 +157,40 @@ def _finished(ns, payload: dict, given: set[str]) -> Done | None:
                     f"to resume. Train it further with --total-steps N (> {done_at}); evaluate it again with "
                     f"train/evaluate.py --checkpoint {ns.run_dir / 'checkpoints' / 'last.pt'} --json FILE", 0)
     return None
+
+
+def _fill_recipe_options(ns, preset: str) -> tuple[str, ...]:
+    """The run options the KGRL recipe sets for the method (presets.recipe_options: --kgrl-recipe's, else `preset`'s)
+    put into `ns` where not given; the names filled. A resumed run keeps its own (from its checkpoint). An option
+    whose prerequisite was given otherwise is left out (a residual scale without a base, a probe fit without the
+    probe); what cannot go with the recipe is refused here, naming the recipe."""
+    m = METHODS.get(ns.method)
+    if ns.resume or m is None or not m.takes_recipe:
+        return ()
+    name = ns.kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]
+    options = recipe_options(KGRL_RECIPES[name], ns.method)
+    if not options:
+        return ()
+    source = f"--kgrl-recipe {name}" if ns.kgrl_recipe else f"the {preset} preset's KGRL recipe ({name})"
+    if options.get("vision_probe_obs") and ns.vae is not None:
+        raise ConfigError(f"--vae with {source}: its policy reads the near-hole probe fitted on the cached VAE's own "
+                          "image set, which a given --vae does not come with; leave out --vae, or give --kgrl-recipe "
+                          "reach_keep_prior")
+    if options.get("kgrl_base") not in (None, "prior") and ns.kgrl_time_action and ns.kgrl_base is None:
+        raise ConfigError(f"--kgrl-time-action with {source}: its a = 0 is a base controller (--kgrl-base "
+                          f"{options['kgrl_base']}), which the time action does not move; give --kgrl-base prior or "
+                          "--kgrl-recipe reach_keep_prior")
+    filled = []
+    for option, value in options.items():
+        if getattr(ns, option) is not None:
+            continue
+        if option == "kgrl_residual_scale" and ns.kgrl_base in (None, "prior"):
+            continue
+        if option == "vision_probe_fit" and not ns.vision_probe_obs:
+            continue
+        setattr(ns, option, value)
+        filled.append(option)
+    return tuple(filled)
 
 
 def _check_options(ns) -> None:
@@ -327,7 +362,13 @@ def _apply_device_and_defaults(ns, provisional: str, checked) -> None:
     ns.device = ns.device or default_device()
     if (why := device_error(ns.device)) is not None:
         raise ConfigError(why)
-    ns.preset = ns.preset or ("thesis" if ns.device.startswith("cuda") else "quick")
+    preset = ns.preset or ("thesis" if ns.device.startswith("cuda") else "quick")
+    if preset != provisional and ns.recipe_filled:  # (a CUDA default device: the thesis preset's recipe, not quick's)
+        for option in ns.recipe_filled:
+            setattr(ns, option, None)
+        ns.recipe_filled = _fill_recipe_options(ns, preset)
+        _check_options(ns)
+    ns.preset = preset
     m = METHODS[ns.method]
     if m.takes_recipe:
         ns.kgrl_recipe = ns.kgrl_recipe or DEFAULT_KGRL_RECIPE[ns.preset]
