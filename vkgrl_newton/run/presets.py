@@ -53,6 +53,8 @@ def recipe_options(recipe: dict, method: str) -> dict:
     """The run.py options (RunConfig field: value) that `recipe` sets for `method`, in the order they are
     filled in (an option before those that need it); {} for a recipe of SAC fields and floors alone."""
     return dict(recipe.get("options", {}).get(method, {}))
+
+
 # ppo_train_cfg settings that only rsl-rl's OnPolicyRunner reads: refused by --ppo, with what run.py does instead
 PPO_RUNNER_ONLY = {"save_interval": "checkpoints: --checkpoint-every", "logger": "it writes tensorboard itself",
                    "multi_gpu": "one device per run"}
