@@ -95,6 +95,7 @@ class RunConfig:
     checkpoint_every: int = 4_800
     eval_episodes: int = 8
     eval_seed: int = EVAL_SEED
+    keep_at: tuple[int, ...] = ()  # --keep-at: transition counts whose policy is kept (checkpoints/at_<N>.pt)
     # how it runs
     device: str = "cpu"
     run_dir: Path = Path("runs/train/run")
@@ -146,7 +147,13 @@ class RunConfig:
     def plan(self) -> dict:
         """What a run was asked to do beyond its identity; a resumed run keeps it unless given again."""
         return {"total_steps": self.total_steps, "checkpoint_every": self.checkpoint_every,
-                "eval_episodes": self.eval_episodes, "eval_seed": self.eval_seed}
+                "eval_episodes": self.eval_episodes, "eval_seed": self.eval_seed,
+                **({"keep_at": list(self.keep_at)} if self.keep_at else {})}  # (absent unless asked: older runs')
+
+    def kept_path(self, n: int) -> Path:
+        """--keep-at N: the policy at the first step at or past N transitions (no replay buffer: it evaluates,
+        train/evaluate.py --checkpoint, and does not resume)."""
+        return self.run_dir / "checkpoints" / f"at_{n}.pt"
 
     def vae_path(self) -> Path:
         """The run's vae.pt: the given one, or the cached one of the task and preset (made when missing)."""
@@ -288,6 +295,11 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
     ap.add_argument("--no-time-obs", action="store_true",
                     help="drop normalized time from the policy input (thesis A.1; the KMP still uses it)")
     ap.add_argument("--checkpoint-every", type=positive_int, default=None, help="transitions between checkpoints")
+    ap.add_argument("--keep-at", type=positive_int, nargs="+", default=None, metavar="N",
+                    help="keep the policy as it is at N transitions (each N <= --total-steps; the first step at or "
+                         "past N) in checkpoints/at_<N>.pt, without the replay buffer: points of a learning curve that "
+                         "train/evaluate.py --checkpoint evaluates on the run's own evaluation episodes. Training is "
+                         "unchanged")
     ap.add_argument("--eval-episodes", type=int, default=None,
                     help="final deterministic evaluation: episodes per world, all worlds at once (0: none; default: "
                          f"enough for >= {EVAL_MIN_EPISODES} episodes, a success rate's standard error <= 0.045); "

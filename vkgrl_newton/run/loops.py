@@ -28,7 +28,8 @@ class Loop:
     """What a training loop (sac_loop, ppo_loop) works with, and the timings it keeps for the summary."""
 
     def __init__(self, *, cfg, env, step_fn, agent, counters: dict, writer, curves: CurveWriter, bar, checkpoint,
-                 ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int, rollout_policy=None, action_path=None):
+                 ckpt_path: Path, log, time_obs: bool, env_steps0: int, grad0: int, rollout_policy=None,
+                 action_path=None, keep=None):
         self.cfg, self.env, self.agent, self.counters = cfg, env, agent, counters
         self.step_fn = step_fn  # env.step, or the KGRL action path's step
         # the KGRL action path (its query phase is a policy input with the time action); None: delta pose
@@ -36,6 +37,10 @@ class Loop:
         self.writer, self.curves, self.bar, self.log = writer, curves, bar, log
         self.checkpoint = checkpoint  # checkpoint(pending_update=False, snapshot=None)
         self.ckpt_path, self.time_obs = ckpt_path, time_obs
+        # --keep-at: keep(n, snapshot=None) writes the policy at n; the counts still ahead (a resumed run's
+        # earlier ones were kept before its checkpoint: a kept file is written before the checkpoint after it)
+        self.keep = keep
+        self.keep_ahead = [n for n in cfg.keep_at if n > counters["transitions"]]
         # acts instead of the agent in its first prior_rollouts transitions (SACConfig.prior_rollouts_policy)
         self.rollout_policy = rollout_policy
         self.env_steps0, self.grad0 = env_steps0, grad0  # where this session's throughput counts from
@@ -87,6 +92,11 @@ class Loop:
         self.bar.update(env.num_envs)
         if self.status:
             self.bar.set_postfix({k: f"{v:.3g}" for k, v in self.status.items()}, refresh=False)
+
+    def keep_due(self, snapshot: dict | None = None) -> None:
+        """Keep the policy at each --keep-at count this step reached (before any checkpoint of the step)."""
+        while self.keep_ahead and self.counters["transitions"] >= self.keep_ahead[0]:
+            self.keep(self.keep_ahead.pop(0), snapshot)
 
     def stopped(self, e: BaseException, snapshot: dict | None = None, pending_update: bool = False) -> int:
         """Ctrl-C / SIGTERM: checkpoint (the run now, or `snapshot`), close the logs, say how to go on."""
@@ -167,6 +177,7 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
                    not_terminal, *_privileged_inputs(obs, next_obs, dones, extras))
             obs = next_obs
             loop.after_step(extras)
+            loop.keep_due()  # (the policy before the update due after this step, in either loop order)
             if pool is not None:
                 pending_update = agent.update_due()  # runs during the next env step
             elif agent.update_due():
@@ -288,6 +299,7 @@ def ppo_loop(loop: Loop, payload: dict | None) -> int | None:
             loop.status["std"] = float(alg.get_policy().output_std.detach().mean())
             loop.bank_wall_time()
             at_update = snapshot()
+            loop.keep_due(at_update)
             if counters["transitions"] // cfg.checkpoint_every > last_ckpt:
                 last_ckpt = counters["transitions"] // cfg.checkpoint_every
                 loop.checkpoint(snapshot=at_update)

@@ -383,6 +383,9 @@ def _apply_device_and_defaults(ns, provisional: str, checked) -> None:
     ns.num_envs = ns.num_envs or defaults["num_envs"]
     ns.total_steps = ns.total_steps or defaults["total_steps"]
     ns.checkpoint_every = ns.checkpoint_every or defaults["checkpoint_every"]
+    if ns.keep_at and max(ns.keep_at) > ns.total_steps:
+        raise ConfigError(f"--keep-at {max(ns.keep_at)}: past the run's --total-steps {ns.total_steps} (each N must be "
+                          "<= it; the end's policy is checkpoints/last.pt)")
     if ns.eval_episodes is None:
         ns.eval_episodes = -(-EVAL_MIN_EPISODES // ns.num_envs)
     if m.uses_ppo and ns.ppo_cfg is None:  # minibatches of ~512 transitions for these worlds
@@ -416,7 +419,8 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         sac=ns.sac_config, ppo=ns.ppo_cfg, demos=ns.demos, num_demos=ns.num_demos, kmp_reference=reference,
         kmp_params=kmp_params, vae=ns.vae, total_steps=ns.total_steps,
         checkpoint_every=ns.checkpoint_every, eval_episodes=ns.eval_episodes, eval_seed=ns.eval_seed,
-        device=ns.device, run_dir=run_dir, resume=bool(ns.resume), cache_dir=ns.cache_dir,
+        keep_at=tuple(sorted(set(ns.keep_at or ()))), device=ns.device, run_dir=run_dir, resume=bool(ns.resume),
+        cache_dir=ns.cache_dir,
         progress=not ns.no_progress, overlap=ns.overlap, eager_physics=bool(ns.eager_physics),
         verbose=bool(ns.verbose), **changes)
 

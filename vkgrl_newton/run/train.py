@@ -146,6 +146,15 @@ def _make_loop(cfg: RunConfig, built: Built, meta: dict, counters: dict, payload
                                         "pending_update": pending_update,  # overlapped loop: due, not yet run
                                         "rng": snapshot["rng"], "plan": cfg.plan()})
 
+    def keep(n: int, snapshot: dict | None = None) -> None:
+        """--keep-at n: the policy now (or `snapshot`'s), as a checkpoint without the replay buffer."""
+        state = (snapshot["agent"] if snapshot is not None else
+                 agent.state_dict(include_buffer=False) if hasattr(agent, "buffer") else agent.state_dict())
+        at = dict((snapshot or {"counters": counters})["counters"])
+        save_checkpoint(cfg.kept_path(n), {"meta": meta, "counters": at, "agent": state, "pending_update": False,
+                                           "rng": rng_state(env), "plan": cfg.plan()})
+        log(f"kept the policy at {at['transitions']} transitions: {cfg.kept_path(n)} (--keep-at {n})")
+
     # a resumed run drops what was logged after its checkpoint (as curves.jsonl does): the events at
     # the checkpoint's own count were logged before it was written, so they stay (an update pending at
     # the checkpoint, or an interrupted final evaluation, logs a second point at that count on resume)
@@ -170,7 +179,7 @@ def _make_loop(cfg: RunConfig, built: Built, meta: dict, counters: dict, payload
     return Loop(cfg=cfg, env=env, step_fn=built.step_fn, agent=agent, counters=counters, writer=writer, curves=curves,
                 bar=bar, checkpoint=checkpoint, ckpt_path=cfg.ckpt_path, log=log, time_obs=cfg.time_obs,
                 env_steps0=counters["env_steps"], grad0=agent.num_updates, rollout_policy=rollout_policy,
-                action_path=built.action_path)
+                action_path=built.action_path, keep=keep)
 
 
 def _summary(loop: Loop, payload: dict | None) -> dict:
