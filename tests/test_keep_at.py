@@ -140,3 +140,27 @@ def test_keep_at_refuses_counts_it_cannot_keep(run_py, tmp_path, capsys, argv, m
     assert exc.value.code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "r").exists()  # refused before anything was made
+
+
+def test_evaluate_py_scores_a_checkpoint_on_the_runs_own_evaluation_episodes(run_py, wp_cpu, tmp_path):
+    """What the kept policies' learning curve rests on: train/evaluate.py --checkpoint with the run's worlds, episodes
+    per world and eval seed plays the episodes of the run's final evaluation, whatever the run's seed (the
+    construction seed of evaluate.py differs here), so that its points pair with metrics.json and the prior's."""
+    import numpy as np
+
+    run_dir = tmp_path / "run"
+    assert run_py.main(["--method", "sac", "--run-dir", str(run_dir), "--eval-episodes", "2", "--total-steps", "16",
+                        "--seed", "3", "--eval-seed", "77", *TINY_RUN]) == 0
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    evaluate_py = load_script("evaluate")
+    out = tmp_path / "again.json"
+    assert evaluate_py.main(["--checkpoint", str(run_dir / "checkpoints" / "last.pt"), "--num-envs", "2",
+                             "--episodes", "2", "--eval-seed", "77", "--json", str(out),
+                             "--cache-dir", str(tmp_path / "cache")]) == 0
+    again = json.loads(out.read_text())
+    assert len(again["per_episode"]) == len(metrics["per_episode"]) == 2
+    for a, b in zip(again["per_episode"], metrics["per_episode"]):
+        assert a["world_success"] == b["world_success"]
+        # the same float32 physics and policy on the same machine: equal up to float32 summation order over an
+        # episode's steps (~1e-7 relative a step, a few hundred steps)
+        np.testing.assert_allclose(a["world_contact_force"], b["world_contact_force"], rtol=1e-4, atol=1e-6)
