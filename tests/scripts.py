@@ -16,3 +16,13 @@ def load_script(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def on_the_prior(argv: list[str]) -> list[str]:
+    """run.py arguments with `--kgrl-recipe reach_keep_prior` added for a kgrl or vision_kgrl run that names no
+    recipe: the tests of options on the KMP prior's null space (a = 0 the prior) keep it, where the quick preset's
+    default on PegInsert Factory 4D is the residual recipe (a base controller as a = 0; run.presets.QUICK_KGRL_RECIPE)."""
+    method = argv[argv.index("--method") + 1] if "--method" in argv else "kgrl"  # (run.py's default method)
+    if method in ("kgrl", "vision_kgrl") and "--kgrl-recipe" not in argv and "--resume" not in argv:
+        return [*argv, "--kgrl-recipe", "reach_keep_prior"]
+    return list(argv)

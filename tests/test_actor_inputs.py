@@ -10,6 +10,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vkgrl_newton.tasks import CONTROL_DT, observation_dim
+from scripts import on_the_prior
 
 
 def test_observation_widths():
@@ -50,8 +51,8 @@ def test_the_runs_options_and_refusals(tmp_path):
     from vkgrl_newton.run.resolve import resolve
 
     def run(*argv):
-        return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r"), "--cpu-matmul",
-                                        "torch"]).config
+        return resolve(build_parser(), [*on_the_prior(list(argv)), "--device", "cpu", "--run-dir", str(tmp_path / "r"),
+                                        "--cpu-matmul", "torch"]).config
 
     cfg = run("--method", "sac", "--tcp-velocity-obs", "--force-obs")
     assert cfg.obs_dim == 8 + 6 + 3 and cfg.meta()["tcp_velocity_obs"] and cfg.meta()["force_obs"]

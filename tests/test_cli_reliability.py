@@ -61,7 +61,8 @@ RUN_PY_CASES = [
      "--sac prior_rollouts: acts with or learns from the KMP prior"),
     (["--sac", "prior_rollouts=480", "--sac", "prior_rollouts_policy=search", "--method", "kgrl", "--kgrl-recipe",
       "base"], "--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs z reach"),
-    (["--sac", "prior_rollouts_policy=search", "--kgrl-reach-floor-z", "0"],  # the recipe's z floor taken away
+    (["--sac", "prior_rollouts_policy=search", "--kgrl-reach-floor-z", "0", "--kgrl-recipe", "reach_keep_prior"],
+     # (the recipe's z floor taken away
      "--sac prior_rollouts_policy=search lightens the prior's ~20 mm press on a blocked part: it needs z reach"),
     (["--kgrl-recipe", "fast"], "argument --kgrl-recipe: invalid choice: 'fast' (choose from 'base', 'reach_keep_prior', 'residual')"),
     (["--kgrl-recipe", "base", "--method", "sac"], "--kgrl-recipe is for the kgrl methods on SAC (kgrl, vision_kgrl)"),

@@ -173,9 +173,9 @@ def test_a_bad_file_kwarg_is_one_line_before_anything_is_built(kwargs, message, 
     from vkgrl_newton.run import build
 
     monkeypatch.setattr(build, "build_env", lambda *a, **k: pytest.fail("an env was built before the refusal"))
-    with pytest.raises(ValueError) as e:
+    with pytest.raises(ValueError) as e:  # (on the prior: the residual recipe, the default here, takes no vae)
         gym.make_vec("VKGRL/PegInsert-Factory-4D-Vision-KGRL-v0", num_envs=1, device="cpu", cache_dir=tmp_path,
-                     **kwargs)
+                     kgrl_recipe="reach_keep_prior", **kwargs)
     assert message in str(e.value) and "does not exist" in str(e.value) and "\n" not in str(e.value)
     with pytest.raises(ValueError, match="num_envs is not a kwarg of gymnasium.make"):
         gym.make("VKGRL/PegInsert-Factory-4D-v0", num_envs=2, device="cpu")

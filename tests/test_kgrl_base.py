@@ -175,13 +175,14 @@ def test_the_base_steers_once_blocked_and_the_policy_adds_to_it(wp_cpu):
 def test_the_option_is_recorded_refused_where_it_cannot_hold_and_rebuilt_by_evaluate(tmp_path):
     import argparse
 
+    from scripts import on_the_prior
     from vkgrl_newton.run.config import ConfigError, build_parser
     from vkgrl_newton.run.evaluate import evaluation_config
     from vkgrl_newton.run.resolve import resolve
 
-    def run(*argv):
-        return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r"), "--cpu-matmul",
-                                        "torch"]).config
+    def run(*argv):  # (on the prior's recipe: the options one by one, as before the residual recipe was the default)
+        return resolve(build_parser(), [*on_the_prior(list(argv)), "--device", "cpu", "--run-dir", str(tmp_path / "r"),
+                                        "--cpu-matmul", "torch"]).config
 
     camera = run("--method", "vision_kgrl", "--vision-probe-obs", "--kgrl-base", "centre_latent")
     assert camera.kgrl_base == "centre_latent" and camera.meta()["kgrl_base"] == "centre_latent"
@@ -279,7 +280,7 @@ def test_the_residual_recipe_is_the_measured_options_and_gives_way_to_given_ones
                                 *floors]}
     for method, options in measured.items():
         recipe = run("--method", method, "--kgrl-recipe", "residual")
-        by_hand = run("--method", method, *options)
+        by_hand = run("--method", method, *options, "--kgrl-recipe", "reach_keep_prior")
         assert (recipe.kgrl_recipe, by_hand.kgrl_recipe) == ("residual", "reach_keep_prior")
         assert dataclasses.replace(recipe, kgrl_recipe="reach_keep_prior") == by_hand, method
         assert recipe.meta()["kgrl_recipe"] == "residual" and recipe.reach_floor_z_mm == 25.0
@@ -295,10 +296,13 @@ def test_the_residual_recipe_is_the_measured_options_and_gives_way_to_given_ones
     assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-residual-scale", "0.5",
                "--kgrl-reach-floor", "3").kgrl_residual_scale == 0.5
     assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-reach-floor", "3").reach_floor_mm == 3.0
-    # the other recipes set no run options: the quick default and the thesis's, as before
-    plain = run("--method", "vision_kgrl")
-    assert (plain.kgrl_recipe, plain.kgrl_base, plain.vision_probe_obs, plain.seat_press_mm) == \
-        ("reach_keep_prior", "prior", False, 0.0)
+    # the quick preset's default here (run.presets.QUICK_KGRL_RECIPE); the other recipes set no run options: the
+    # quick default elsewhere and the thesis's, as before
+    assert run("--method", "vision_kgrl").kgrl_base == "centre_latent"
+    for plain in (run("--method", "vision_kgrl", "--task", "GearMesh"), run("--method", "vision_kgrl", "--env", "forge"),
+                  run("--method", "vision_kgrl", "--kgrl-recipe", "reach_keep_prior")):
+        assert (plain.kgrl_recipe, plain.kgrl_base, plain.vision_probe_obs, plain.seat_press_mm) == \
+            ("reach_keep_prior", "prior", False, 0.0)
     assert run("--method", "kgrl", "--preset", "thesis").kgrl_base == "prior"
     for argv, message in ((["--method", "vision_kgrl", "--kgrl-recipe", "residual", "--vae", str(tmp_path / "v.pt")],
                            "--vae with --kgrl-recipe residual: "),

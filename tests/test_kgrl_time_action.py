@@ -14,6 +14,7 @@ from vkgrl_newton.kmp.demos import synthetic_demos
 from vkgrl_newton.kmp.prior import fit_prior
 from vkgrl_newton.rotations import quat_from_euler_xyz
 from vkgrl_newton.tasks import get_task
+from scripts import on_the_prior
 
 E, D = 5, 4
 
@@ -115,7 +116,7 @@ def test_bad_time_steps_and_the_runs_refusals(wp_cpu, tables, tmp_path):
         KGRLActionPath(tables, make_env(), time_steps=2).pose(torch.zeros(E, D))
 
     def run(*argv):
-        return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r")])
+        return resolve(build_parser(), [*on_the_prior(list(argv)), "--device", "cpu", "--run-dir", str(tmp_path / "r")])
 
     for method in ("sac", "kgrl_ppo"):
         with pytest.raises(ConfigError, match="--kgrl-time-action is for the kgrl methods on SAC"):
@@ -137,9 +138,9 @@ def test_a_time_action_run_trains_evaluates_its_prior_and_its_checkpoint(wp_cpu,
     synthetic_demos("PegInsert", 8, action_dim=6, seed=1).save(demos)
     run_dir = tmp_path / "timed"
     tiny = [*TINY_RUN, "--sac", "prior_rollouts=8", "--cpu-matmul", "torch"]
-    assert load_script("run").main(["--method", "kgrl", "--kgrl-time-action", "2", "--demos", str(demos),
-                                    "--run-dir", str(run_dir), "--total-steps", "24", "--eval-episodes", "1",
-                                    "--cache-dir", str(tmp_path / "cache"), *tiny]) == 0
+    assert load_script("run").main(on_the_prior(["--method", "kgrl", "--kgrl-time-action", "2", "--demos", str(demos),
+                                                 "--run-dir", str(run_dir), "--total-steps", "24", "--eval-episodes",
+                                                 "1", "--cache-dir", str(tmp_path / "cache"), *tiny])) == 0
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["kgrl_time_action"] == 2 and metrics["obs_dim"] == 9 and "prior_eval" in metrics
     out = tmp_path / "eval.json"

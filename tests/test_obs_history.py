@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from vkgrl_newton.envs.history import ObservationHistory, stacked_width
+from scripts import on_the_prior
 
 E, W, A, K = 3, 4, 2, 3
 
@@ -55,7 +56,7 @@ def test_the_runs_width_is_the_stacks_and_the_option_is_refused_where_it_cannot_
     from vkgrl_newton.run.resolve import resolve
 
     def run(*argv):
-        return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r")]).config
+        return resolve(build_parser(), [*on_the_prior(list(argv)), "--device", "cpu", "--run-dir", str(tmp_path / "r")]).config
 
     cfg = run("--method", "sac", "--obs-history", "2", "--cpu-matmul", "torch")
     assert cfg.obs_dim == stacked_width(8, 4, 2) == 8 + 2 * 12 and cfg.meta()["obs_history"] == 2

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from scripts import on_the_prior
 
 
 def synthetic_frames(n: int, d: int, seed: int, rounds: int | None = None) -> dict:
@@ -177,8 +178,8 @@ def test_the_option_is_recorded_refused_without_the_probe_and_rebuilt_by_evaluat
     from vkgrl_newton.run.resolve import resolve
 
     def run(*argv):
-        return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r"), "--cpu-matmul",
-                                        "torch", "--cache-dir", str(tmp_path / "cache")]).config
+        return resolve(build_parser(), [*on_the_prior(list(argv)), "--device", "cpu", "--run-dir", str(tmp_path / "r"),
+                                        "--cpu-matmul", "torch", "--cache-dir", str(tmp_path / "cache")]).config
 
     closed = run("--method", "vision_kgrl", "--vision-probe-obs", "--vision-probe-fit", "closed_loop")
     images = run("--method", "vision_kgrl", "--vision-probe-obs")

@@ -43,7 +43,8 @@ def test_evaluate_refuses_a_bad_demos_file_in_one_line_as_run_py_does(notes):
 
 
 def test_run_refuses_a_vae_that_is_another_kind_of_file_in_one_line(notes):
-    _one_line_refusal(_cli("train/run.py", "--method", "vision_kgrl", "--vae", str(notes), "--device", "cpu"),
+    _one_line_refusal(_cli("train/run.py", "--method", "vision_kgrl", "--vae", str(notes), "--device", "cpu",
+                           "--kgrl-recipe", "reach_keep_prior"),
                       "--vae", str(notes), "is damaged or not a checkpoint")
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import gymnasium as gym
 import pytest
 import torch
-from scripts import ROOT, load_script
+from scripts import ROOT, load_script, on_the_prior
 
 from vkgrl_newton.registration import env_ids
 from vkgrl_newton.run.config import ConfigError, RunConfig, build_parser
@@ -91,7 +91,9 @@ def test_every_gym_id_is_the_env_of_its_run_py_method(wp_cpu, tmp_path):
         for f in _ENV_FIELDS:
             assert getattr(ours, f) == getattr(run, f), (name, f, getattr(ours, f), getattr(run, f))
         if METHODS[kw["method"]].takes_recipe:  # on a CPU: the quick preset's recipe, its floors in mm
-            assert (ours.kgrl_recipe, ours.reach_floor_mm, ours.reach_floor_z_mm) == ("reach_keep_prior", 3.0, 25.0)
+            measured = (kw["task"], kw["family"], kw["action_dim"]) == ("PegInsert", "factory", 4)
+            assert (ours.kgrl_recipe, ours.reach_floor_mm, ours.reach_floor_z_mm, ours.kgrl_base != "prior") == \
+                (("residual", 4.0, 25.0, True) if measured else ("reach_keep_prior", 3.0, 25.0, False)), name
     base = gym_config("PegInsert", "factory", 4, "kgrl", device="cpu", kgrl_recipe="base")
     assert (base.reach_floor_mm, base.reach_floor_z_mm) == (0.0, 0.0)  # the thesis's null space, on request
     with pytest.raises(ValueError, match="kgrl_recipe='fast' is not allowed"):
@@ -135,6 +137,7 @@ def test_every_method_row_trains_briefly_and_evaluates(method, wp_cpu, tmp_path,
     argv += ["--total-steps", "16", *TINY_SAC] if m.uses_sac else ["--total-steps", "16", *TINY_PPO]
     argv += ["--demos", str(demos_file)] if m.uses_kmp else []
     argv += ["--vae", str(vae_file)] if m.vision else []
+    argv = on_the_prior(argv)  # (a given --vae: not with the residual recipe, the quick default here)
     if m.takes_recipe:
         argv += ["--sac", "prior_rollouts=8"]
     assert run_py.main(argv) == 0

@@ -353,18 +353,20 @@ def test_run_kgrl_end_to_end_with_evaluation(run_py, wp_cpu, tmp_path, peg_demos
     from vkgrl_newton.cache import file_sha256
     from vkgrl_newton.kmp.prior import KMP_BETA, KMP_L, KMP_LAMBDA
 
-    # (the quick preset's recipe, reach_keep_prior: its reach floors in the prior's record)
+    # (the quick preset's recipe on PegInsert Factory 4D, residual: its reach floors and seat press in the prior's
+    # record)
     assert metrics["prior"] == {"demos": str(peg_demos_file), "demos_sha256": file_sha256(peg_demos_file),
                                 "lam": KMP_LAMBDA, "beta": KMP_BETA, "l": KMP_L, "num_demos": 8,
-                                "reach_floor_mm": 3.0, "reach_floor_z_mm": 25.0}
+                                "reach_floor_mm": 4.0, "reach_floor_z_mm": 25.0, "seat_press_mm": 5.0}
     assert metrics["episodes"] == 2 and metrics["method"] == "kgrl"
     config = json.loads((run_dir / "config.json").read_text())
     sac = config["sac"]  # the recipe's SAC fields over the preset, TINY's over both
-    assert config["kgrl_recipe"] == "reach_keep_prior"
+    assert (config["kgrl_recipe"], config["kgrl_base"], config["kgrl_residual_scale"]) == ("residual", "centre_search",
+                                                                                            0.2)
     from vkgrl_newton.run.presets import KGRL_RECIPES
 
-    assert {k: sac[k] for k in KGRL_RECIPES["reach_keep_prior"]["sac"]} == \
-        {**KGRL_RECIPES["reach_keep_prior"]["sac"], "prior_rollouts": 8} and sac["batch_size"] == 8
+    assert {k: sac[k] for k in KGRL_RECIPES["residual"]["sac"]} == \
+        {**KGRL_RECIPES["residual"]["sac"], "prior_rollouts": 8} and sac["batch_size"] == 8
     assert (sac["log_std_bound"], sac["prior_anchor"], sac["critic_layer_norm"], sac["prior_ratio"]) == \
         ("tanh", True, True, 0.5)  # the recipe, spelled out
     assert (sac["warmup"], sac["actor_init_std"], sac["log_std_max"]) == ("policy", 0.1, -1.2)
@@ -408,7 +410,8 @@ def test_the_search_acts_in_the_first_prior_rollouts_and_fills_their_buffer(run_
     run_dir = tmp_path / "search"
     assert run_py.main(["--method", "kgrl", "--run-dir", str(run_dir), "--demos", str(peg_demos_file),
                         "--total-steps", "16", "--eval-episodes", "0", *TINY, "--sac", "prior_rollouts=8",
-                        "--sac", "prior_rollouts_policy=search", "--sac", "prior_ratio=0.5"]) == 0
+                        "--sac", "prior_rollouts_policy=search", "--sac", "prior_ratio=0.5",
+                        "--kgrl-recipe", "reach_keep_prior"]) == 0  # (the search is for a = 0 the prior)
     assert calls == [0, 1, 2, 3] and len(stored) == 8  # 2 worlds: the first 4 env steps searched, 4 the learner
     for n, action, prior_rows in stored:
         searched = n < 8
@@ -565,7 +568,8 @@ def test_run_vision_kgrl_with_a_given_vae_and_evaluate_its_checkpoint(run_py, wp
     vae_file = save_vae(tmp_path / "vae.pt", DenoisingVAE(cfg), cfg, meta={"task": "PegInsert"})
     run_dir = tmp_path / "vkgrl"
     code = run_py.main(["--method", "vision_kgrl", "--vae", str(vae_file), "--run-dir", str(run_dir),
-                        "--demos", str(peg_demos_file), "--total-steps", "16", "--eval-episodes", "1", *TINY])
+                        "--demos", str(peg_demos_file), "--total-steps", "16", "--eval-episodes", "1", *TINY,
+                        "--kgrl-recipe", "reach_keep_prior"])  # (a given VAE: the residual recipe reads the cache's)
     assert code == 0
     config = json.loads((run_dir / "config.json").read_text())
     from vkgrl_newton.cache import file_sha256
@@ -771,8 +775,9 @@ def test_the_search_is_refused_without_z_reach_under_the_final_presets_recipe(ru
     cfg = make_sac_config("quick", prior_rollouts=480, prior_rollouts_policy="search")
     from vkgrl_newton.run.config import search_without_z_reach
 
-    args = argparse.Namespace(method="kgrl", kgrl_recipe=None, kgrl_reach_floor_z=None, resume=False)
-    assert search_without_z_reach(args, cfg, "quick") is None  # reach_keep_prior: 25 mm
+    args = argparse.Namespace(method="kgrl", kgrl_recipe=None, kgrl_reach_floor_z=None, resume=False, task="PegInsert",
+                              env="factory", action_dim=4)
+    assert search_without_z_reach(args, cfg, "quick") is None  # residual (the quick default here): 25 mm
     assert "needs z reach" in search_without_z_reach(args, cfg, "thesis")
     args.kgrl_reach_floor_z = 10.0
     assert search_without_z_reach(args, cfg, "thesis") is None

@@ -32,8 +32,10 @@ simulator starts fresh episodes (physics state is not checkpointed).
 
 Steps are env transitions summed over worlds: 16 worlds x 150 control steps = 2400 per episode.
 Defaults: preset `thesis` (Table 5.3, 128 worlds) on CUDA, `quick` (16 worlds) on CPU. kgrl and
-vision_kgrl take the defaults of a recipe (`--kgrl-recipe`): `reach_keep_prior` with the quick
-preset (issue 28's deviations, which beat the prior on paired episodes), `base` with the thesis's.
+vision_kgrl take the defaults of a recipe (`--kgrl-recipe`): with the quick preset `residual` on
+PegInsert Factory 4D (a learned residual on a fixed controller, issue 40: 0.62 / 0.92 at 30k) and
+`reach_keep_prior` elsewhere (issue 28's deviations, which beat the prior on paired episodes);
+`base` with the thesis's.
 """
 from __future__ import annotations
 

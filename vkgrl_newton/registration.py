@@ -13,8 +13,9 @@ worlds):
 
 3 x 2 x 2 x 4 = 48 ids, each the env of one train/run.py method (spec kwargs `method`), built by
 the run library's builder (`run.gym.make_vec_env`) exactly as run.py builds it: the KGRL ids in the
-null space of the preset's KGRL recipe (`kgrl_recipe=None`: reach_keep_prior on a CPU's quick preset,
-base, the thesis's, on CUDA's thesis preset; or name one; `preset=` chooses the preset). kwargs (make_vec's): device (None: CUDA when present), seed, cache_dir
+null space of the preset's KGRL recipe (`kgrl_recipe=None`: on a CPU's quick preset residual for PegInsert
+Factory 4D, whose a = 0 is a fixed controller of the ceiling instead of the prior, and reach_keep_prior for the
+others; base, the thesis's, on CUDA's thesis preset; or name one; `preset=` chooses the preset). kwargs (make_vec's): device (None: CUDA when present), seed, cache_dir
 (where the KGRL prior and the vision VAE are made once and reused, as train/run.py does),
 tensors ("numpy" | "torch"), geometry ("primitives" | "mesh" for GearMesh and NutThread), vae (a
 vae.pt of your own). The ids are built here from `tasks.py`, not imported from the env, so that

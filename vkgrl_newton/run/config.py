@@ -24,7 +24,7 @@ from ..results.curves import CURVES_FILE
 from ..results.paired import EVAL_SEED
 from ..tasks import ACTION_DIMS, FAMILIES, GEOMETRIES, TASKS, VISION_LATENT_DIM, observation_dim
 from .methods import METHODS, RUN_METHODS, Method, names
-from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, KGRL_RECIPES, NO_RECIPE, RUN_DEFAULTS
+from .presets import EVAL_MIN_EPISODES, KGRL_RECIPES, NO_RECIPE, RUN_DEFAULTS, default_kgrl_recipe
 
 __all__ = ["RunConfig", "ConfigError", "build_parser", "parse_sac_overrides", "kgrl_recipe", "RUN_FILES",
            "search_without_z_reach", "unavailable", "explicit_args", "add_cpu_matmul_option"]
@@ -271,12 +271,14 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "Default 1")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
                     help=f"{names(takes_recipe=True)}: the defaults under --sac, the reach floors and the seat press: "
-                         "reach_keep_prior (the quick preset's: beats the prior on paired episodes, docs/results.md), "
+                         "reach_keep_prior (the quick preset's but on PegInsert Factory 4D: beats the prior on paired "
+                         "episodes, docs/results.md), "
                          "base (the thesis preset's: the thesis's null space; the quick default until issue 28) or "
                          "residual (reach_keep_prior's learner on a fixed controller as a = 0, scaled 0.2, with 4 mm "
                          "floors and the seat pressed 5 mm: --kgrl-base centre_search for kgrl, centre_latent with "
                          "--vision-probe-obs --vision-probe-fit closed_loop for vision_kgrl; options given win; "
-                         "docs/results/base_floor4_40). Default: the preset's, or on --resume the run's")
+                         "the quick preset's on PegInsert Factory 4D, docs/results/recipe_40). Default: the preset's, or on "
+                         "--resume the run's")
     ap.add_argument("--ppo", metavar="KEY=VALUE", action="append", default=[],
                     help="ppo methods: override an rsl-rl PPO setting by its dotted path, e.g. --ppo "
                          "num_steps_per_env=32 --ppo algorithm.learning_rate=3e-4 (default: Isaac Lab Factory's, "
@@ -381,7 +383,7 @@ def kgrl_recipe(ns, preset: str) -> dict:
     SAC fields for the methods without one)."""
     if not METHODS[ns.method].takes_recipe:
         return NO_RECIPE
-    return KGRL_RECIPES[ns.kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]]
+    return KGRL_RECIPES[ns.kgrl_recipe or default_kgrl_recipe(preset, ns.task, ns.env, ns.action_dim)]
 
 
 def sac_config_for(ns, preset: str) -> SACConfig:

@@ -6,9 +6,10 @@
 
 An id is the env of one train/run.py method (its spec kwargs name it: `method`), built as run.py
 builds it: the same preset default (thesis on CUDA, quick on a CPU; `preset=` to choose), and for the
-KGRL ids the same KGRL recipe's null space (`kgrl_recipe=None`: the preset's default, reach_keep_prior
-on quick with its 3 / 25 mm reach floors, base on thesis: the thesis's null space; the recipe's SAC
-fields are the learner's and do not apply to an env). `gym_config(...)` is that RunConfig without
+KGRL ids the same KGRL recipe's null space (`kgrl_recipe=None`: the preset's default, on quick residual
+for PegInsert Factory 4D (a = 0 is a fixed controller, the Vision id's reads the near-hole probe) and
+reach_keep_prior with its 3 / 25 mm reach floors elsewhere, base on thesis: the thesis's null space; the
+recipe's SAC fields are the learner's and do not apply to an env). `gym_config(...)` is that RunConfig without
 building anything (tests hold it equal to run.py's).
 """
 
@@ -21,7 +22,7 @@ from .._io import output_path_error
 from ..envs.vector import RENDER_MODES, AssemblySingleEnv, AssemblyVectorEnv, check_vector_kwargs
 from .config import ConfigError, RunConfig
 from .methods import METHODS
-from .presets import DEFAULT_KGRL_RECIPE, KGRL_RECIPES, NO_RECIPE, recipe_options
+from .presets import DEFAULT_KGRL_RECIPE, KGRL_RECIPES, NO_RECIPE, default_kgrl_recipe, recipe_options
 
 __all__ = ["make_vec_env", "make_env", "gym_config", "KWARGS"]
 
@@ -66,7 +67,7 @@ def gym_config(task: str = "PegInsert", family: str = "factory", action_dim: int
     if (why := device_error(device, "device")) is not None:
         raise ValueError(why)
     preset = preset or ("thesis" if str(device).startswith("cuda") else "quick")
-    recipe_name = (kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]) if row.takes_recipe else None
+    recipe_name = (kgrl_recipe or default_kgrl_recipe(preset, task, family, action_dim)) if row.takes_recipe else None
     recipe = KGRL_RECIPES[recipe_name] if recipe_name else NO_RECIPE
     options = recipe_options(recipe, method)  # the recipe's run options: a = 0's base controller, the probe's input
     if options.get("vision_probe_obs") and vae is not None:

@@ -22,7 +22,8 @@ from ..tasks import geometry_error
 from .config import (RUN_FILES, ConfigError, RunConfig, check_scalars, default_run_dir, explicit_args, kgrl_recipe,
                      parse_sac_overrides, prior_table_flags, sac_config_for, search_without_z_reach, unavailable)
 from .methods import METHODS, names
-from .presets import DEFAULT_KGRL_RECIPE, EVAL_MIN_EPISODES, KGRL_RECIPES, PPO_RUNNER_ONLY, RUN_DEFAULTS, recipe_options
+from .presets import (EVAL_MIN_EPISODES, KGRL_RECIPES, PPO_RUNNER_ONLY, RUN_DEFAULTS, default_kgrl_recipe,
+                      recipe_options)
 
 __all__ = ["resolve", "Resolved", "Done", "without_file_records", "check_demos_file", "check_vae_file"]
 
@@ -167,11 +168,12 @@ def _fill_recipe_options(ns, preset: str) -> tuple[str, ...]:
     m = METHODS.get(ns.method)
     if ns.resume or m is None or not m.takes_recipe:
         return ()
-    name = ns.kgrl_recipe or DEFAULT_KGRL_RECIPE[preset]
+    name = ns.kgrl_recipe or default_kgrl_recipe(preset, ns.task, ns.env, ns.action_dim)
     options = recipe_options(KGRL_RECIPES[name], ns.method)
     if not options:
         return ()
-    source = f"--kgrl-recipe {name}" if ns.kgrl_recipe else f"the {preset} preset's KGRL recipe ({name})"
+    source = f"--kgrl-recipe {name}" if ns.kgrl_recipe else \
+        f"the {preset} preset's KGRL recipe for {ns.task} {ns.env} {ns.action_dim}D ({name})"
     if options.get("vision_probe_obs") and ns.vae is not None:
         raise ConfigError(f"--vae with {source}: its policy reads the near-hole probe fitted on the cached VAE's own "
                           "image set, which a given --vae does not come with; leave out --vae, or give --kgrl-recipe "
@@ -371,7 +373,7 @@ def _apply_device_and_defaults(ns, provisional: str, checked) -> None:
     ns.preset = preset
     m = METHODS[ns.method]
     if m.takes_recipe:
-        ns.kgrl_recipe = ns.kgrl_recipe or DEFAULT_KGRL_RECIPE[ns.preset]
+        ns.kgrl_recipe = ns.kgrl_recipe or default_kgrl_recipe(ns.preset, ns.task, ns.env, ns.action_dim)
     if ns.sac_config is None and not m.uses_ppo:
         try:
             ns.sac_config = checked if ns.preset == provisional else sac_config_for(ns, ns.preset)
