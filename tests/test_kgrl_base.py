@@ -369,3 +369,16 @@ def test_a_base_on_a_pressed_prior_steers_and_settles_on_the_pressed_tables(wp_c
     m = base.mean[-1:, :3]
     z = base._settled_z(env, torch.zeros(1, 3, dtype=torch.float64), m)
     assert float(z) == pytest.approx(float(want[-1, 2]) - 1e-3 * ORACLE_PUSH_MM, abs=1e-12)
+
+
+def test_the_runs_last_line_names_its_a0():
+    """run.py's closing line says what a = 0 was: the prior, or the base controller of --kgrl-base (the residual
+    recipe's, the quick default on PegInsert Factory 4D), whose success is not the prior's."""
+    from vkgrl_newton.run.train import paired_line
+
+    gain = {"mean": 0.25, "ci_low": 0.1, "ci_high": 0.4, "n_pairs": 128, "a_mean": 0.5, "b_mean": 0.25,
+            "confidence": 0.95, "reps": 100}
+    metrics = {"success_rate": 0.5, "prior_eval": {"success_rate": 0.25}, "paired_gain": {"success_rate": gain}}
+    assert paired_line(metrics).startswith("success 0.500, the prior 0.250 on the same 128 episodes: gain +0.250")
+    line = paired_line({**metrics, "kgrl_base": "centre_latent"})
+    assert line.startswith("success 0.500, its a = 0 (the centre_latent controller) 0.250 on the same 128 episodes")

@@ -226,8 +226,8 @@ def _finish(cfg: RunConfig, built: Built, meta: dict, loop: Loop, payload: dict 
     shown = {k: result[k] for k in ("success_rate", "mean_contact_force", "time_to_first_success_s",
                                     "mean_episode_reward") if k in result}
     log(f"done: {strict_json(shown)} -> {cfg.run_dir / 'metrics.json'}")
-    if "paired_gain" in metrics:
-        log(paired_line(metrics))
+    if "paired_gain" in result:
+        log(paired_line(result))
     return 0
 
 
@@ -275,9 +275,12 @@ def final_evaluation(cfg: RunConfig, env, agent, action_path) -> dict:
 
 
 def paired_line(metrics: dict) -> str:
-    """One line: the policy's success, its prior's on the same episodes, and the paired gain."""
+    """One line: the policy's success, its a = 0's on the same episodes (the prior, or the base controller that
+    --kgrl-base names), and the paired gain."""
     g = metrics["paired_gain"]["success_rate"]
-    return (f"success {metrics['success_rate']:.3f}, the prior {metrics['prior_eval']['success_rate']:.3f} on the same "
+    base = metrics.get("kgrl_base", "prior")
+    a0 = "the prior" if base == "prior" else f"its a = 0 (the {base} controller)"
+    return (f"success {metrics['success_rate']:.3f}, {a0} {metrics['prior_eval']['success_rate']:.3f} on the same "
             f"{g['n_pairs']} episodes: " + format_gain("gain", g))
 
 
