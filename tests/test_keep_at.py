@@ -88,7 +88,7 @@ def test_sac_keeps_its_policy_at_each_count_without_changing_the_training(run_py
     assert result["policy"] == "sac" and result["episodes"] == 2
 
 
-def test_a_resumed_run_keeps_the_counts_still_ahead(run_py, wp_cpu, tmp_path, monkeypatch):
+def test_a_resumed_run_keeps_the_counts_still_ahead(run_py, wp_cpu, tmp_path, monkeypatch, capsys):
     from vkgrl_newton.agents.checkpoint import load_checkpoint
     from vkgrl_newton.envs.assembly_env import AssemblyEnv
 
@@ -104,15 +104,28 @@ def test_a_resumed_run_keeps_the_counts_still_ahead(run_py, wp_cpu, tmp_path, mo
 
     monkeypatch.setattr(AssemblyEnv, "step", stopping_step)
     argv = ["--method", "sac", "--run-dir", str(run_dir), "--eval-episodes", "0", "--total-steps", "40",
-            "--checkpoint-every", "100", "--no-overlap", "--keep-at", "8", "32", *TINY_RUN]
+            "--checkpoint-every", "100", "--no-overlap", "--keep-at", "8", "10", "24", "32", *TINY_RUN]
     assert run_py.main(argv) == 130
     monkeypatch.setattr(AssemblyEnv, "step", real_step)
-    at_8 = (run_dir / "checkpoints" / "at_8.pt").read_bytes()
-    assert not (run_dir / "checkpoints" / "at_32.pt").exists()
-    # resumed without naming it again: the plan in the checkpoint asks for 32 still
+    kept = run_dir / "checkpoints"
+    at_8 = (kept / "at_8.pt").read_bytes()
+    assert not (kept / "at_32.pt").exists()
+    stopped = load_checkpoint(kept / "last.pt")
+    assert stopped["counters"]["transitions"] == 24
+    # as if the stop had come between the step that reached 24 (and 10) and their kept files
+    (kept / "at_24.pt").unlink()
+    (kept / "at_10.pt").unlink()
+    capsys.readouterr()
+    # resumed without naming it again: the plan in the checkpoint asks for them still
     assert run_py.main(["--run-dir", str(run_dir), "--resume", "--no-progress"]) == 0
-    assert load_checkpoint(run_dir / "checkpoints" / "at_32.pt")["counters"]["transitions"] == 32
-    assert (run_dir / "checkpoints" / "at_8.pt").read_bytes() == at_8  # a count behind the checkpoint: untouched
+    assert load_checkpoint(kept / "at_32.pt")["counters"]["transitions"] == 32
+    assert (kept / "at_8.pt").read_bytes() == at_8  # a count behind the checkpoint: untouched
+    # 24 is the checkpoint's own step: kept from it; 10 is older: said, and not kept under a wrong name
+    again = load_checkpoint(kept / "at_24.pt")
+    assert again["counters"]["transitions"] == 24
+    _tensors_equal(again["agent"]["actor"], stopped["agent"]["actor"])
+    assert not (kept / "at_10.pt").exists()
+    assert "--keep-at 10 is behind this run's checkpoint (24 transitions)" in capsys.readouterr().out
 
 
 def test_ppo_keeps_what_a_run_of_that_many_transitions_ends_with(run_py, wp_cpu, tmp_path):
@@ -132,6 +145,7 @@ def test_ppo_keeps_what_a_run_of_that_many_transitions_ends_with(run_py, wp_cpu,
 
 @pytest.mark.parametrize("argv, message", [
     (["--keep-at", "50", "--total-steps", "40"], "--keep-at 50: past the run's --total-steps 40"),
+    (["--keep-at", "40000"], "--keep-at 40000: past the run's --total-steps 30000"),  # the quick preset's
     (["--keep-at", "0"], "--keep-at"),
 ])
 def test_keep_at_refuses_counts_it_cannot_keep(run_py, tmp_path, capsys, argv, message):

@@ -382,3 +382,28 @@ def test_the_runs_last_line_names_its_a0():
     assert paired_line(metrics).startswith("success 0.500, the prior 0.250 on the same 128 episodes: gain +0.250")
     line = paired_line({**metrics, "kgrl_base": "centre_latent"})
     assert line.startswith("success 0.500, its a = 0 (the centre_latent controller) 0.250 on the same 128 episodes")
+
+
+@pytest.mark.parametrize("extra, on_cpu", [
+    (["--kgrl-time-action", "2"], r"--kgrl-time-action with the quick preset's KGRL recipe for PegInsert factory 4D "
+                                  r"\(residual\)"),
+    (["--kgrl-reach-floor-z", "0"], r"--kgrl-base centre_search .* needs z reach"),
+])
+def test_a_refusal_of_the_guessed_quick_recipe_waits_for_the_device(extra, on_cpu, monkeypatch, tmp_path):
+    """Neither --device nor --preset: the preset is the quick one's guess until Warp names the device. On a CUDA
+    machine the run is the thesis preset's (recipe base, a = 0 the prior), which takes these options; the residual
+    recipe's refusal is made only where the quick preset holds (here a CPU)."""
+    from vkgrl_newton import runtime
+    from vkgrl_newton.run.config import ConfigError, build_parser
+    from vkgrl_newton.run.resolve import resolve
+
+    argv = ["--method", "kgrl", "--run-dir", str(tmp_path / "r"), *extra]
+    monkeypatch.setattr(runtime, "default_device", lambda: "cuda:0")
+    monkeypatch.setattr(runtime, "device_error", lambda device, flag="--device": None)
+    config = resolve(build_parser(), argv).config
+    assert (config.preset, config.kgrl_recipe, config.kgrl_base, config.device) == ("thesis", "base", "prior", "cuda:0")
+    monkeypatch.setattr(runtime, "default_device", lambda: "cpu")
+    with pytest.raises(ConfigError, match=on_cpu):
+        resolve(build_parser(), argv)
+    with pytest.raises(ConfigError, match=on_cpu):  # a CPU named: refused at once, as before
+        resolve(build_parser(), [*argv, "--device", "cpu"])

@@ -75,7 +75,8 @@ GRIDS = {
     "thesis": {"tasks": list(TASKS), "envs": list(ENVS), "action_dims": list(ACTION_DIMS), "methods": list(METHODS),
                "seeds": list(range(10))},
     # what a 2-core CPU finishes in hours on the quick preset (57 min with kgrl's base recipe, docs/log/benchmarks.md;
-    # kgrl's reach_keep_prior trials take 2-4x as long: ~25 min each, two at a time)
+    # kgrl's trials take 2-4x as long: ~25-28 min each, two at a time; 4D runs the residual recipe, the quick
+    # default there, and 6D reach_keep_prior)
     "quick": {"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [4, 6], "methods": ["sac", "kgrl"],
               "seeds": [0, 1, 2]},
 }

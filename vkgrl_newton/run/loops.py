@@ -37,8 +37,7 @@ class Loop:
         self.writer, self.curves, self.bar, self.log = writer, curves, bar, log
         self.checkpoint = checkpoint  # checkpoint(pending_update=False, snapshot=None)
         self.ckpt_path, self.time_obs = ckpt_path, time_obs
-        # --keep-at: keep(n, snapshot=None) writes the policy at n; the counts still ahead (a resumed run's
-        # earlier ones were kept before its checkpoint: a kept file is written before the checkpoint after it)
+        # --keep-at: keep(n, snapshot=None) writes the policy at n; the counts still ahead
         self.keep = keep
         self.keep_ahead = [n for n in cfg.keep_at if n > counters["transitions"]]
         # acts instead of the agent in its first prior_rollouts transitions (SACConfig.prior_rollouts_policy)
@@ -93,10 +92,26 @@ class Loop:
         if self.status:
             self.bar.set_postfix({k: f"{v:.3g}" for k, v in self.status.items()}, refresh=False)
 
+    def keep_missed(self, transitions_per_step: int) -> None:
+        """A resumed run's --keep-at counts at or behind its checkpoint whose file is missing (a stop came between
+        the step that reached the count and its kept file, or the count is new on --resume): the checkpoint is the
+        policy at the first step at or past such a count when that step is its last one (kept now); an older count
+        is said, not kept under a wrong name."""
+        at = self.counters["transitions"]
+        for n in self.cfg.keep_at:
+            if n <= at and not self.cfg.kept_path(n).exists():
+                if n > at - transitions_per_step:
+                    self.keep(n)
+                else:
+                    self.log(f"note: --keep-at {n} is behind this run's checkpoint ({at} transitions) and was not kept "
+                             "before it: not kept")
+
     def keep_due(self, snapshot: dict | None = None) -> None:
-        """Keep the policy at each --keep-at count this step reached (before any checkpoint of the step)."""
+        """Keep the policy at each --keep-at count this step reached (before any checkpoint of the step; a count
+        leaves the list once its file is written, so a stop while writing keeps it on resume)."""
         while self.keep_ahead and self.counters["transitions"] >= self.keep_ahead[0]:
-            self.keep(self.keep_ahead.pop(0), snapshot)
+            self.keep(self.keep_ahead[0], snapshot)
+            self.keep_ahead.pop(0)
 
     def stopped(self, e: BaseException, snapshot: dict | None = None, pending_update: bool = False) -> int:
         """Ctrl-C / SIGTERM: checkpoint (the run now, or `snapshot`), close the logs, say how to go on."""
@@ -143,6 +158,8 @@ def sac_loop(loop: Loop, payload: dict | None) -> int | None:
 
     obs = env.get_observations()
     last_ckpt = counters["transitions"] // cfg.checkpoint_every
+    if payload is not None:
+        loop.keep_missed(env.num_envs)
     not_terminal = torch.zeros(env.num_envs, device=env.tdev)  # the `terminated` flags, all 0
     loop.t_start = time.perf_counter()
     if payload is None:  # resumable from its first moment (a sweep's retry of a killed trial)
@@ -266,6 +283,8 @@ def ppo_loop(loop: Loop, payload: dict | None) -> int | None:
     obs = env.get_observations().to(agent.device)
     alg.train_mode()
     last_ckpt = counters["transitions"] // cfg.checkpoint_every
+    if payload is not None:
+        loop.keep_missed(env.num_envs * agent.num_steps_per_env)
     loop.t_start = time.perf_counter()
     if payload is None:
         loop.checkpoint()

@@ -62,9 +62,22 @@ def resolve(parser, argv, torch_threads: int | None = None) -> Resolved | Done:
         if isinstance(payload, Done):
             return payload
     provisional = ns.preset or ("thesis" if (ns.device or "").startswith("cuda") else "quick")
-    ns.recipe_filled = _fill_recipe_options(ns, provisional)
-    _check_options(ns)
-    checked = _check_sac_options(ns, provisional)
+    ns.recipe_filled, ns.recipe_deferred = (), False
+    try:
+        ns.recipe_filled = _fill_recipe_options(ns, provisional)
+        _check_options(ns)
+        checked = _check_sac_options(ns, provisional)
+    except ConfigError:
+        # neither --preset nor --device: the preset is the quick one's guess until Warp says which device runs (a
+        # CUDA default is the thesis preset, whose recipe fills nothing). A refusal that the guessed recipe's
+        # options alone cause waits for the device (_apply_device_and_defaults); any other is refused here.
+        if ns.preset is not None or ns.device is not None or ns.kgrl_recipe is not None or ns.resume:
+            raise
+        for option in ns.recipe_filled:
+            setattr(ns, option, None)
+        ns.recipe_filled, ns.recipe_deferred = (), True
+        _check_options(ns)
+        checked = _check_sac_options(ns, provisional)
     if (reason := unavailable(ns)) is not None:  # (imports the env's module: the heavy part starts here)
         return Done(f"train/run.py: {reason}", 2)
     _check_given_demos(ns)
@@ -131,6 +144,7 @@ def _from_checkpoint(ns, given: set[str]) -> dict | Done:
     for name, value in payload.get("plan", {}).items():  # total_steps, checkpoint_every, eval_episodes, eval_seed
         if name not in given:
             setattr(ns, name, value)
+    ns.keep_at_planned = "keep_at" not in given and bool(ns.keep_at)
     if ns.method in METHODS and METHODS[ns.method].uses_ppo:
         if not ns.ppo:
             ns.ppo_cfg = meta.get("ppo")
@@ -154,8 +168,10 @@ def _finished(ns, payload: dict, given: set[str]) -> Done | None:
     except (json.JSONDecodeError, ValueError, TypeError, AttributeError):
         finished = False
     if finished and not ("total_steps" in given and ns.total_steps > done_at):
+        keep = (" (--keep-at keeps counts still to be trained: with --total-steps, counts above "
+                f"{done_at})") if "keep_at" in given else ""
         return Done(f"train/run.py: {ns.run_dir} is a finished run ({done_at} transitions, {metrics_file}); nothing "
-                    f"to resume. Train it further with --total-steps N (> {done_at}); evaluate it again with "
+                    f"to resume{keep}. Train it further with --total-steps N (> {done_at}); evaluate it again with "
                     f"train/evaluate.py --checkpoint {ns.run_dir / 'checkpoints' / 'last.pt'} --json FILE", 0)
     return None
 
@@ -204,6 +220,8 @@ def _check_options(ns) -> None:
         raise ConfigError(f"--geometry mesh is for the sac and kgrl methods: the image sets and VAEs of {ns.method} "
                           "are made on the primitives")
     check_scalars(ns)
+    if ns.total_steps is not None and (why := _keep_at_error(ns)):  # (given, or the resumed run's: else the preset's)
+        raise ConfigError(why)
     if ns.demos is not None and not m.uses_kmp and not ns.resume:
         raise ConfigError(f"--demos is for the kgrl methods ({names(uses_kmp=True)}), not {ns.method!r}")
     if m.uses_ppo:  # PPO's settings are --ppo's; the SAC-loop options do not apply
@@ -328,6 +346,15 @@ def _check_sac_options(ns, provisional: str):
     return checked
 
 
+def _keep_at_error(ns) -> str | None:
+    """Why --keep-at cannot be kept (a count past the run's transitions), or None."""
+    if not ns.keep_at or max(ns.keep_at) <= ns.total_steps:
+        return None
+    whose = " (the counts its checkpoint plans: give --keep-at again)" if getattr(ns, "keep_at_planned", False) else ""
+    return (f"--keep-at {max(ns.keep_at)}{whose}: past the run's --total-steps {ns.total_steps} (each N must be <= it; "
+            "the end's policy is checkpoints/last.pt)")
+
+
 def _check_given_demos(ns) -> None:
     if ns.demos is not None and not ns.resume:  # a missing, damaged or foreign file stops here
         check_demos_file(ns.demos, ns.task)
@@ -365,11 +392,15 @@ def _apply_device_and_defaults(ns, provisional: str, checked) -> None:
     if (why := device_error(ns.device)) is not None:
         raise ConfigError(why)
     preset = ns.preset or ("thesis" if ns.device.startswith("cuda") else "quick")
-    if preset != provisional and ns.recipe_filled:  # (a CUDA default device: the thesis preset's recipe, not quick's)
+    # a CUDA default device: the thesis preset's recipe, not the guessed quick one's; a refusal the guess deferred
+    # is made now when the guess holds
+    if (preset != provisional and ns.recipe_filled) or ns.recipe_deferred:
         for option in ns.recipe_filled:
             setattr(ns, option, None)
         ns.recipe_filled = _fill_recipe_options(ns, preset)
         _check_options(ns)
+        if ns.recipe_deferred and preset == provisional:
+            checked = _check_sac_options(ns, preset)
     ns.preset = preset
     m = METHODS[ns.method]
     if m.takes_recipe:
@@ -385,9 +416,8 @@ def _apply_device_and_defaults(ns, provisional: str, checked) -> None:
     ns.num_envs = ns.num_envs or defaults["num_envs"]
     ns.total_steps = ns.total_steps or defaults["total_steps"]
     ns.checkpoint_every = ns.checkpoint_every or defaults["checkpoint_every"]
-    if ns.keep_at and max(ns.keep_at) > ns.total_steps:
-        raise ConfigError(f"--keep-at {max(ns.keep_at)}: past the run's --total-steps {ns.total_steps} (each N must be "
-                          "<= it; the end's policy is checkpoints/last.pt)")
+    if why := _keep_at_error(ns):
+        raise ConfigError(why)
     if ns.eval_episodes is None:
         ns.eval_episodes = -(-EVAL_MIN_EPISODES // ns.num_envs)
     if m.uses_ppo and ns.ppo_cfg is None:  # minibatches of ~512 transitions for these worlds

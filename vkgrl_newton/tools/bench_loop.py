@@ -123,6 +123,7 @@ class _Timers:
 def _run_config(method: str, transitions: int, overlap: bool, run_dir: Path, cache_dir: Path, vae: Path | None,
                 cpu_matmul: str | None):
     from ..run.config import build_parser
+    from ..run.methods import METHODS as ROWS
     from ..run.resolve import resolve
 
     argv = ["--method", method, "--device", "cpu", "--total-steps", str(transitions), "--eval-episodes", "0",
@@ -130,6 +131,8 @@ def _run_config(method: str, transitions: int, overlap: bool, run_dir: Path, cac
             "--overlap" if overlap else "--no-overlap", "--checkpoint-every", str(10 * transitions)]
     if vae is not None:
         argv += ["--vae", str(vae)]
+    if ROWS[method].takes_recipe:  # the recipe of docs/results.md's figures (and a given --vae goes with it; the
+        argv += ["--kgrl-recipe", "reach_keep_prior"]  # residual recipe, the quick default here, takes the cache's)
     if cpu_matmul is not None:
         argv += ["--cpu-matmul", cpu_matmul]
     return resolve(build_parser(), argv).config
