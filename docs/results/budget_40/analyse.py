@@ -34,7 +34,7 @@ ARMS = {  # this study's run name, base_floor4_40's name of the same RunConfig a
     "kgrl": ("PegInsert_factory_4d_kgrl+residual", "PegInsert_factory_4d_kgrl+base_centre_search_seat5_floor4_s0.2",
              0.797),
 }
-CACHE = Path("/work/main/runs/cache")
+CACHE = ROOT / "runs" / "cache"  # (the cache the runs were trained with: their prior, VAE and probe)
 
 
 def success(per_episode) -> np.ndarray:
