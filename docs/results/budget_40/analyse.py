@@ -27,7 +27,7 @@ from vkgrl_newton.results.seeds import format_t, format_tests, over_seeds  # noq
 
 KEPT = HERE / "kept"  # kept/<arm>/seed<S>/at_<N>.json: evaluate.py's results for the kept policies
 REPORT = HERE / "report" / "runs"  # train/report.py's copies of the 200k runs
-AT_30K = HERE.parent / "base_floor4_40" / "report_seeds0-6" / "runs"
+AT_30K = HERE.parent / "base_floor4_40" / "report_seeds0-9" / "runs"
 ARMS = {  # this study's run name, base_floor4_40's name of the same RunConfig at 30k, the thesis's level at ~1M
     "vision_kgrl": ("PegInsert_factory_4d_vision_kgrl+residual",
                     "PegInsert_factory_4d_vision_kgrl+base_cl_seat5_floor4_s0.2", 0.993),
