@@ -407,3 +407,70 @@ def test_a_refusal_of_the_guessed_quick_recipe_waits_for_the_device(extra, on_cp
         resolve(build_parser(), argv)
     with pytest.raises(ConfigError, match=on_cpu):  # a CPU named: refused at once, as before
         resolve(build_parser(), [*argv, "--device", "cpu"])
+
+
+def test_the_blind_bases_spiral_runs_at_the_given_speed(wp_cpu, tmp_path):
+    """--kgrl-search-speed MM: the centre_search base's spiral (KMPCentrePolicy) follows spiral_offset at MM per step:
+    its commanded x, y over the blocked steps is the Archimedean spiral's arc at that speed (closed form: the arc of
+    r = b theta from 0 to theta is b theta^2 / 2 to first order, so after k steps at v the radius is sqrt(2 b v k));
+    the option is recorded, keys a = 0's cached evaluation, is rebuilt by evaluate and refused off centre_search."""
+    import argparse
+    import math
+
+    from vkgrl_newton.envs.evaluation import base_controller, task_search_params
+    from vkgrl_newton.envs.kgrl_action import KGRLActionPath
+    from vkgrl_newton.run.config import ConfigError, RunConfig, build_parser
+    from vkgrl_newton.run.evaluate import evaluation_config
+    from vkgrl_newton.run.resolve import resolve
+    from vkgrl_newton.run.train import prior_evaluation_key
+
+    env = fake_env(1)
+    path = KGRLActionPath(prior_tables(), env, reach_floor=4e-3, reach_floor_z=25e-3)
+    slow = base_controller("centre_search", path, "PegInsert", search_speed_mm=0.15)
+    assert slow.params == replace(task_search_params("PegInsert"), speed_mm=0.15)
+    assert base_controller("centre_search", path, "PegInsert").params.speed_mm == 0.3
+    mean = path.tables.mean.numpy()
+    radii = {}
+    for n in range(120):  # blocked 20 mm above the seat from step 1, the TCP on the observed target: found at 60
+        env.step_index.fill_(n)
+        env.episode_length_buf.fill_(n)
+        rel = torch.tensor([[0.0, 0.0, float(mean[-1, 2] + 20e-3) if n >= 1 else float(mean[0, 2])]])
+        env.tcp_p = env.target_frame_pos_w + rel
+        slow.actions(env, torch.cat([torch.zeros(1, 1), rel], -1))
+        if n >= 60:  # the wanted x, y before the lead (the TCP sits at 0, so want = (1 + track) spiral)
+            radii[n - 60] = float(slow._last[0][0, :2].norm()) / (1.0 + slow.params.track)
+    assert slow.since.tolist() == [60]
+    b = 1.2e-3 / (2 * math.pi)
+    for k in (20, 40, 59):
+        want = math.sqrt(2 * b * 0.15e-3 * k)  # float64 closed form of spiral_offset's radius
+        assert abs(radii[k] - want) < 1e-12, (k, radii[k], want)
+    for bad in (0.0, -0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="search_speed_mm"):
+            base_controller("centre_search", path, "PegInsert", search_speed_mm=bad)
+    with pytest.raises(ValueError, match="not of 'prior'"):
+        base_controller("prior", path, "PegInsert", search_speed_mm=0.15)
+
+    def run(*argv):
+        return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r"), "--cpu-matmul",
+                                        "torch", "--cache-dir", str(tmp_path)]).config
+
+    cfg = run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-speed", "0.15")
+    assert cfg.kgrl_base == "centre_search" and cfg.kgrl_search_speed_mm == 0.15
+    assert cfg.meta()["kgrl_search_speed_mm"] == 0.15
+    assert "kgrl_search_speed_mm" not in run("--method", "kgrl", "--kgrl-recipe", "residual").meta()
+    with pytest.raises(ConfigError, match="not of the prior"):
+        run("--method", "kgrl", "--kgrl-recipe", "reach_keep_prior", "--kgrl-search-speed", "0.15")
+    with pytest.raises(ConfigError, match="not of --kgrl-base centre_latent"):
+        run("--method", "vision_kgrl", "--kgrl-recipe", "residual", "--kgrl-search-speed", "0.15")
+    for bad in ("0", "2", "nan"):
+        with pytest.raises(ConfigError, match="mm per control step, in \\(0, 1\\]"):
+            run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-speed", bad)
+    args = argparse.Namespace(task="PegInsert", env="factory", action_dim=4, seed=0, num_envs=2, no_time_obs=False,
+                              geometry=None, demos=None, kmp_reference="gmr", device="cpu", cache_dir=tmp_path,
+                              eager_physics=False, policy=None)
+    assert evaluation_config(args, {"meta": cfg.meta()}).kgrl_search_speed_mm == 0.15
+    key_env = SimpleNamespace(num_envs=2, device="cpu", cfg=SimpleNamespace(vision_latent_dim=0))
+    tables = SimpleNamespace(tables=SimpleNamespace(mean=torch.zeros(3, 6), gain=torch.zeros(3, 6, 6)))
+    assert prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search", kgrl_search_speed_mm=0.15),
+                                key_env, tables) != \
+        prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search"), key_env, tables)

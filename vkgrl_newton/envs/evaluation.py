@@ -433,12 +433,18 @@ def task_search_params(task: str) -> SearchParams:
 BASE_CONTROLLERS = ("prior", "centre_search", "centre_latent")
 
 
-def base_controller(name: str, action_path, task: str):
+def base_controller(name: str, action_path, task: str, search_speed_mm: float | None = None):
     """The controller under a KGRL policy's actions for --kgrl-base `name` in `action_path` (its own reach floors:
     the run's), or None for the prior. centre_latent reads the probe's estimate from the env's vision slot (its last
-    LATERAL_DIM entries: the env must carry the probe, --vision-probe-obs)."""
+    LATERAL_DIM entries: the env must carry the probe, --vision-probe-obs). search_speed_mm (centre_search only,
+    --kgrl-search-speed): the spiral's speed along its arc, mm per control step, in place of SearchParams'."""
     if name not in BASE_CONTROLLERS:
         raise ValueError(f"kgrl base {name!r}; allowed: {', '.join(BASE_CONTROLLERS)}")
+    if search_speed_mm is not None:
+        if name != "centre_search":
+            raise ValueError(f"search_speed_mm is the spiral's of kgrl base 'centre_search', not of {name!r}")
+        if not (math.isfinite(search_speed_mm) and 0.0 < search_speed_mm <= 1.0):
+            raise ValueError(f"search_speed_mm={search_speed_mm!r}; allowed: (0, 1] mm per control step")
     if name == "prior":
         return None
     estimate = None
@@ -453,7 +459,10 @@ def base_controller(name: str, action_path, task: str):
 
         def estimate(env):
             return env.current_vision_latent()[:, -LATERAL_DIM:]
-    return KMPCentrePolicy(action_path, task_search_params(task), push_mm=ORACLE_PUSH_MM,
+    params = task_search_params(task)
+    if search_speed_mm is not None:
+        params = replace(params, speed_mm=float(search_speed_mm))
+    return KMPCentrePolicy(action_path, params, push_mm=ORACLE_PUSH_MM,
                            spiral=name == "centre_search", lateral_estimate=estimate)
 
 
