@@ -409,7 +409,7 @@ def test_a_refusal_of_the_guessed_quick_recipe_waits_for_the_device(extra, on_cp
         resolve(build_parser(), [*argv, "--device", "cpu"])
 
 
-def test_the_blind_bases_spiral_runs_at_the_given_speed(wp_cpu, tmp_path):
+def test_the_blind_bases_spiral_runs_at_the_given_speed_and_press(wp_cpu, tmp_path):
     """--kgrl-search-speed MM: the centre_search base's spiral (KMPCentrePolicy) follows spiral_offset at MM per step:
     its commanded x, y over the blocked steps is the Archimedean spiral's arc at that speed (closed form: the arc of
     r = b theta from 0 to theta is b theta^2 / 2 to first order, so after k steps at v the radius is sqrt(2 b v k));
@@ -449,6 +449,21 @@ def test_the_blind_bases_spiral_runs_at_the_given_speed(wp_cpu, tmp_path):
             base_controller("centre_search", path, "PegInsert", search_speed_mm=bad)
     with pytest.raises(ValueError, match="not of 'prior'"):
         base_controller("prior", path, "PegInsert", search_speed_mm=0.15)
+    # --kgrl-search-press: while searching, z is commanded that far below the TCP (the spiral's own x, y unchanged)
+    pressed = base_controller("centre_search", path, "PegInsert", search_press_mm=2.5)
+    assert pressed.params == replace(task_search_params("PegInsert"), press_mm=2.5)
+    for n in range(62):
+        env.step_index.fill_(n)
+        env.episode_length_buf.fill_(n)
+        z = float(mean[-1, 2] + 20e-3) if n >= 1 else float(mean[0, 2])
+        rel = torch.tensor([[0.0, 0.0, z]])
+        env.tcp_p = env.target_frame_pos_w + rel
+        pressed.actions(env, torch.cat([torch.zeros(1, 1), rel], -1))
+    # (the observed z, float32, in float64 less 2.5 mm: one float64 rounding)
+    assert pressed.since.tolist() == [60] and abs(float(pressed._last[0][0, 2]) - (float(rel[0, 2]) - 2.5e-3)) < 1e-15
+    for bad in (0.0, 11.0, float("inf")):
+        with pytest.raises(ValueError, match="search_press_mm"):
+            base_controller("centre_search", path, "PegInsert", search_press_mm=bad)
 
     def run(*argv):
         return resolve(build_parser(), [*argv, "--device", "cpu", "--run-dir", str(tmp_path / "r"), "--cpu-matmul",
@@ -465,12 +480,24 @@ def test_the_blind_bases_spiral_runs_at_the_given_speed(wp_cpu, tmp_path):
     for bad in ("0", "2", "nan"):
         with pytest.raises(ConfigError, match="mm per control step, in \\(0, 1\\]"):
             run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-speed", bad)
+    both = run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-press", "2.5")
+    assert both.kgrl_search_press_mm == 2.5 and both.meta()["kgrl_search_press_mm"] == 2.5
+    assert "kgrl_search_speed_mm" not in both.meta()
+    for bad in ("0", "11", "nan"):
+        with pytest.raises(ConfigError, match="mm below the TCP, in \\(0, 10\\]"):
+            run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-press", bad)
+    with pytest.raises(ConfigError, match="--kgrl-search-press sets the blind spiral search"):
+        run("--method", "kgrl", "--kgrl-recipe", "reach_keep_prior", "--kgrl-search-press", "2.5")
     args = argparse.Namespace(task="PegInsert", env="factory", action_dim=4, seed=0, num_envs=2, no_time_obs=False,
                               geometry=None, demos=None, kmp_reference="gmr", device="cpu", cache_dir=tmp_path,
                               eager_physics=False, policy=None)
     assert evaluation_config(args, {"meta": cfg.meta()}).kgrl_search_speed_mm == 0.15
+    assert evaluation_config(args, {"meta": both.meta()}).kgrl_search_press_mm == 2.5
     key_env = SimpleNamespace(num_envs=2, device="cpu", cfg=SimpleNamespace(vision_latent_dim=0))
     tables = SimpleNamespace(tables=SimpleNamespace(mean=torch.zeros(3, 6), gain=torch.zeros(3, 6, 6)))
     assert prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search", kgrl_search_speed_mm=0.15),
+                                key_env, tables) != \
+        prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search"), key_env, tables)
+    assert prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search", kgrl_search_press_mm=2.5),
                                 key_env, tables) != \
         prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search"), key_env, tables)

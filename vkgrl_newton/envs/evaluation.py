@@ -433,18 +433,22 @@ def task_search_params(task: str) -> SearchParams:
 BASE_CONTROLLERS = ("prior", "centre_search", "centre_latent")
 
 
-def base_controller(name: str, action_path, task: str, search_speed_mm: float | None = None):
+def base_controller(name: str, action_path, task: str, search_speed_mm: float | None = None,
+                    search_press_mm: float | None = None):
     """The controller under a KGRL policy's actions for --kgrl-base `name` in `action_path` (its own reach floors:
     the run's), or None for the prior. centre_latent reads the probe's estimate from the env's vision slot (its last
     LATERAL_DIM entries: the env must carry the probe, --vision-probe-obs). search_speed_mm (centre_search only,
-    --kgrl-search-speed): the spiral's speed along its arc, mm per control step, in place of SearchParams'."""
+    --kgrl-search-speed): the spiral's speed along its arc, mm per control step, in place of SearchParams'; and
+    search_press_mm (--kgrl-search-press): z commanded that far below the TCP while it searches."""
     if name not in BASE_CONTROLLERS:
         raise ValueError(f"kgrl base {name!r}; allowed: {', '.join(BASE_CONTROLLERS)}")
-    if search_speed_mm is not None:
+    for field, value, top in (("search_speed_mm", search_speed_mm, 1.0), ("search_press_mm", search_press_mm, 10.0)):
+        if value is None:
+            continue
         if name != "centre_search":
-            raise ValueError(f"search_speed_mm is the spiral's of kgrl base 'centre_search', not of {name!r}")
-        if not (math.isfinite(search_speed_mm) and 0.0 < search_speed_mm <= 1.0):
-            raise ValueError(f"search_speed_mm={search_speed_mm!r}; allowed: (0, 1] mm per control step")
+            raise ValueError(f"{field} is the spiral's of kgrl base 'centre_search', not of {name!r}")
+        if not (math.isfinite(value) and 0.0 < value <= top):
+            raise ValueError(f"{field}={value!r}; allowed: (0, {top:g}] mm")
     if name == "prior":
         return None
     estimate = None
@@ -462,6 +466,8 @@ def base_controller(name: str, action_path, task: str, search_speed_mm: float | 
     params = task_search_params(task)
     if search_speed_mm is not None:
         params = replace(params, speed_mm=float(search_speed_mm))
+    if search_press_mm is not None:
+        params = replace(params, press_mm=float(search_press_mm))
     return KMPCentrePolicy(action_path, params, push_mm=ORACLE_PUSH_MM,
                            spiral=name == "centre_search", lateral_estimate=estimate)
 

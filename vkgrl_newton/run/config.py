@@ -69,6 +69,7 @@ class RunConfig:
     kgrl_residual_scale: float = 1.0  # with a base: the policy's actions scaled by it before they are added
     # with the centre_search base: its spiral's speed along the arc, mm per control step (None: SearchParams' 0.3)
     kgrl_search_speed_mm: float | None = None
+    kgrl_search_press_mm: float | None = None  # and z commanded this far below the TCP while searching (None: 1)
     # the policy's extra inputs (envs.assembly_env.EnvConfig; deviations from eq. 5.5): the TCP's velocity,
     # and in Factory the smoothed contact force (Forge's observation has it)
     tcp_velocity_obs: bool = False
@@ -195,8 +196,9 @@ class RunConfig:
             meta["kgrl_base"] = self.kgrl_base
         if self.kgrl_residual_scale != 1.0:  # likewise
             meta["kgrl_residual_scale"] = self.kgrl_residual_scale
-        if self.kgrl_search_speed_mm is not None:  # likewise
-            meta["kgrl_search_speed_mm"] = self.kgrl_search_speed_mm
+        for name in ("kgrl_search_speed_mm", "kgrl_search_press_mm"):  # likewise
+            if getattr(self, name) is not None:
+                meta[name] = getattr(self, name)
         for name in ("tcp_velocity_obs", "force_obs", "vision_probe_obs"):  # likewise
             if getattr(self, name):
                 meta[name] = True
@@ -277,6 +279,10 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                     help="with --kgrl-base centre_search (the residual recipe's kgrl): the blind spiral's speed along "
                          "its arc, mm per control step, in (0, 1]. Default 0.3 (the ceiling's search). At 0.3 the part "
                          "passes over the hole without dropping in; 0.15 seats 0.609 of PegInsert Factory 4D's paired "
+                         "episodes with a = 0, against 0.258 (docs/results/search_reach_40)")
+    ap.add_argument("--kgrl-search-press", dest="kgrl_search_press_mm", type=float, default=None, metavar="MM",
+                    help="with --kgrl-base centre_search: z commanded MM below the TCP while the spiral searches, in "
+                         "(0, 10]. Default 1 (the ceiling's search). 2.5 seats 0.711 of PegInsert Factory 4D's paired "
                          "episodes with a = 0, against 0.258 (docs/results/search_reach_40)")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
                     help=f"{names(takes_recipe=True)}: the defaults under --sac, the reach floors and the seat press: "

@@ -103,6 +103,7 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      kgrl_time_action=meta.get("kgrl_time_action", 0), kgrl_base=meta.get("kgrl_base", "prior"),
                      kgrl_residual_scale=meta.get("kgrl_residual_scale", 1.0),
                      kgrl_search_speed_mm=meta.get("kgrl_search_speed_mm"),
+                     kgrl_search_press_mm=meta.get("kgrl_search_press_mm"),
                      tcp_velocity_obs=meta.get("tcp_velocity_obs", False),
                      force_obs=meta.get("force_obs", False), vision_probe_obs=meta.get("vision_probe_obs", False),
                      vision_probe_fit=meta.get("vision_probe_fit", "images"),

@@ -32,7 +32,7 @@ _NO_CHECKPOINT = ("--run-dir {run_dir} holds a run that stopped before its first
 # what a resumed run takes from its checkpoint unless given again (then it must agree)
 _RUN_IDENTITY = ("task", "method", "env", "action_dim", "seed", "num_envs", "preset", "label", "privileged_critic",
                  "kgrl_time_action", "tcp_velocity_obs", "force_obs", "obs_history", "vision_probe_obs", "kgrl_base",
-                 "kgrl_residual_scale", "vision_probe_fit", "kgrl_search_speed_mm")
+                 "kgrl_residual_scale", "vision_probe_fit", "kgrl_search_speed_mm", "kgrl_search_press_mm")
 
 
 @dataclass(frozen=True)
@@ -273,13 +273,16 @@ def _check_options(ns) -> None:
         if ns.kgrl_base == "centre_latent" and not ns.vision_probe_obs:
             raise ConfigError("--kgrl-base centre_latent steers by the camera's estimate of the part over the hole: "
                               "add --vision-probe-obs (a vision method), which gives the env that estimate")
-    if ns.kgrl_search_speed_mm is not None:
+    for flag, value, what, top in (("--kgrl-search-speed", ns.kgrl_search_speed_mm, "mm per control step", 1.0),
+                                   ("--kgrl-search-press", ns.kgrl_search_press_mm, "mm below the TCP", 10.0)):
+        if value is None:
+            continue
         if ns.kgrl_base != "centre_search":
-            raise ConfigError("--kgrl-search-speed is the blind spiral's speed of --kgrl-base centre_search (the "
-                              "residual recipe's kgrl), not of " + (f"--kgrl-base {ns.kgrl_base}" if ns.kgrl_base
-                                                                    not in (None, "prior") else "the prior"))
-        if not (math.isfinite(ns.kgrl_search_speed_mm) and 0.0 < ns.kgrl_search_speed_mm <= 1.0):
-            raise ConfigError(f"--kgrl-search-speed {ns.kgrl_search_speed_mm}: mm per control step, in (0, 1]")
+            raise ConfigError(f"{flag} sets the blind spiral search of --kgrl-base centre_search (the residual "
+                              "recipe's kgrl), not of " + (f"--kgrl-base {ns.kgrl_base}" if ns.kgrl_base
+                                                           not in (None, "prior") else "the prior"))
+        if not (math.isfinite(value) and 0.0 < value <= top):
+            raise ConfigError(f"{flag} {value}: {what}, in (0, {top:g}]")
     if ns.kgrl_residual_scale is not None:
         if ns.kgrl_base in (None, "prior") and ns.kgrl_residual_scale != 1.0:
             raise ConfigError("--kgrl-residual-scale scales the policy's actions on a base controller: give "
@@ -453,6 +456,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
         kgrl_base=ns.kgrl_base or "prior", kgrl_residual_scale=float(ns.kgrl_residual_scale or 1.0),
         kgrl_search_speed_mm=None if ns.kgrl_search_speed_mm is None else float(ns.kgrl_search_speed_mm),
+        kgrl_search_press_mm=None if ns.kgrl_search_press_mm is None else float(ns.kgrl_search_press_mm),
         tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs), obs_history=int(ns.obs_history or 0),
         vision_probe_obs=bool(ns.vision_probe_obs), vision_probe_fit=ns.vision_probe_fit or "images", probe=ns.probe,
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,

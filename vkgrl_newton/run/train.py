@@ -300,8 +300,9 @@ def prior_evaluation_key(cfg: RunConfig, env, action_path) -> dict:
         key["force_obs"] = True
     if cfg.kgrl_base != "prior":  # a base steers through the null space: the gain (the reach floors) decides it too
         key["prior_gain_sha256"] = hashlib.sha256(action_path.tables.gain.numpy().tobytes()).hexdigest()
-    if cfg.kgrl_search_speed_mm is not None:  # the blind base's spiral
-        key["kgrl_search_speed_mm"] = cfg.kgrl_search_speed_mm
+    for name in ("kgrl_search_speed_mm", "kgrl_search_press_mm"):  # the blind base's spiral search
+        if getattr(cfg, name) is not None:
+            key[name] = getattr(cfg, name)
     if cfg.kgrl_base == "centre_latent":
         from ..cache import file_sha256
 
