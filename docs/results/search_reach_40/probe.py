@@ -45,6 +45,8 @@ EDGES_MM = (0.89, 1.44, 2.02)  # unseen_error.txt's quartiles of |e| on these ep
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--eval-seed", type=int, default=10_000,
+                    help="the episodes (10000: every study's; another: held-out episodes for a setting chosen on those)")
     ap.add_argument("--cache-dir", default=str(ROOT / "runs" / "cache"))
     ap.add_argument("--json", type=Path, required=True, help="output, a new file (rewritten after each variant)")
     args = ap.parse_args(argv)
@@ -65,14 +67,14 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     env, tables, _ = build("PegInsert", 16, args.cache_dir)
     tables = with_seat_press(tables, SEAT_PRESS_MM * 1e-3)
-    out = {"cpu": cpu_model(), "eval_seed": 10_000, "episodes": 128, "seat_press_mm": SEAT_PRESS_MM,
+    out = {"cpu": cpu_model(), "eval_seed": args.eval_seed, "episodes": 128, "seat_press_mm": SEAT_PRESS_MM,
            "command": "python docs/results/search_reach_40/probe.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "variants": {}}
     for name in args.variants:
         params = dataclasses.replace(task_search_params("PegInsert"), **VARIANTS[name])
         policy = KMPCentrePolicy.with_floors(tables, env, params, push_mm=ORACLE_PUSH_MM, spiral=True)
         t0 = time.perf_counter()
-        records, _ = run_controller(env, policy, 8, 10_000, "PegInsert")
+        records, _ = run_controller(env, policy, 8, args.eval_seed, "PegInsert")
         err = unseen_error(records)
         ok = np.array([float(r["success"]) for r in sorted(records, key=lambda r: (r["round"], r["world"]))])
         bins = np.digitize(err, EDGES_MM)
