@@ -88,7 +88,8 @@ def names(**what) -> str:
 OPTION_RULES = (
     ("--sac, --overlap, --no-time-obs, --cpu-matmul, --privileged-critic, --obs-history", "uses_sac"),
     ("--ppo", "uses_ppo"),
-    ("--kgrl-recipe, --kgrl-time-action, --kgrl-base, --kgrl-residual-scale", "takes_recipe"),
+    ("--kgrl-recipe, --kgrl-time-action, --kgrl-base, --kgrl-residual-scale, --kgrl-search-speed, --kgrl-search-press",
+     "takes_recipe"),
     ("--demos, --num-demos, --kmp-reference, --kgrl-reach-floor[-z], --kgrl-seat-press", "uses_kmp"),
     ("--vae, --vision-probe-obs, --vision-probe-fit", "vision"),
 )
