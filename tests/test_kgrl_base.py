@@ -232,7 +232,7 @@ def test_the_option_is_recorded_refused_where_it_cannot_hold_and_rebuilt_by_eval
 
 
 @pytest.mark.slow
-def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cpu, tmp_path):
+def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cpu, tmp_path, capsys):
     import json
 
     from scripts import TINY_RUN, load_script
@@ -241,11 +241,12 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
     tiny = [*TINY_RUN, "--cpu-matmul", "torch"]
     # the base through the residual recipe (its options filled in by resolve, as the test below checks)
     argv = ["--method", "kgrl", "--kgrl-recipe", "residual", "--run-dir", str(run_dir), "--eval-episodes", "0",
-            "--cache-dir", str(tmp_path / "cache"), "--num-demos", "2", *tiny]
+            "--cache-dir", str(tmp_path / "cache"), "--num-demos", "2", "--kgrl-search-press", "2.5", *tiny]
     assert load_script("run").main([*argv, "--total-steps", "16"]) == 0
     config = json.loads((run_dir / "config.json").read_text())
     assert (config["kgrl_base"], config["kgrl_residual_scale"], config["kgrl_recipe"]) == ("centre_search", 0.2,
                                                                                           "residual")
+    assert config["kgrl_search_press_mm"] == 2.5
     # a resume keeps the run's base and recipe (given again or not) and refuses another
     assert load_script("run").main(["--resume", "--run-dir", str(run_dir), "--total-steps", "32", "--no-progress"]) == 0
     assert json.loads((run_dir / "config.json").read_text()) == {**config, "total_steps": 32}
@@ -253,6 +254,11 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
         load_script("run").main(["--resume", "--run-dir", str(run_dir), "--kgrl-base", "prior", "--total-steps", "48",
                                  "--no-progress"])
     assert refused.value.code == 2
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as refused:  # nor another search press
+        load_script("run").main(["--resume", "--run-dir", str(run_dir), "--kgrl-search-press", "1.5", "--total-steps",
+                                 "48", "--no-progress"])
+    assert refused.value.code == 2 and "kgrl_search_press_mm" in capsys.readouterr().err
     out = tmp_path / "eval.json"
     assert load_script("evaluate").main(["--checkpoint", str(run_dir / "checkpoints" / "last.pt"), "--num-envs", "2",
                                          "--episodes", "1", "--device", "cpu", "--json", str(out),
@@ -501,3 +507,51 @@ def test_the_blind_bases_spiral_runs_at_the_given_speed_and_press(wp_cpu, tmp_pa
     assert prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search", kgrl_search_press_mm=2.5),
                                 key_env, tables) != \
         prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search"), key_env, tables)
+
+
+def test_the_search_options_defaults_methods_guessed_recipe_and_build(monkeypatch, tmp_path):
+    """The search options' defaults are SearchParams' for every task, and a value given equal to one is the run
+    without the option; a method without a base is refused as --kgrl-base is; with neither --device nor --preset the
+    refusal another option causes is that option's, and on a CUDA default (the thesis preset: a = 0 the prior) the
+    search option is refused; build_action_path hands the run's values to the base."""
+    from vkgrl_newton import runtime
+    from vkgrl_newton.envs import evaluation
+    from vkgrl_newton.envs.evaluation import task_search_params
+    from vkgrl_newton.run.build import build_action_path
+    from vkgrl_newton.run.config import SEARCH_PRESS_MM, SEARCH_SPEED_MM, ConfigError, RunConfig, build_parser
+    from vkgrl_newton.run.resolve import resolve
+    from vkgrl_newton.tools.ceiling import CEILING_GEOMETRY
+
+    for task in CEILING_GEOMETRY:
+        assert (task_search_params(task).speed_mm, task_search_params(task).press_mm) == (SEARCH_SPEED_MM,
+                                                                                        SEARCH_PRESS_MM)
+
+    def run(*argv, device=("--device", "cpu")):
+        return resolve(build_parser(), [*argv, *device, "--run-dir", str(tmp_path / "r"), "--cpu-matmul", "torch",
+                                        "--cache-dir", str(tmp_path)]).config
+
+    plain = run("--method", "kgrl", "--kgrl-recipe", "residual")
+    assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-speed", "0.3",
+               "--kgrl-search-press", "1") == plain
+    with pytest.raises(ConfigError, match="--kgrl-search-press is for the kgrl methods on SAC"):
+        run("--method", "sac", "--kgrl-search-press", "2.5")
+    with pytest.raises(ConfigError, match="--kgrl-search-speed is for the kgrl methods on SAC"):
+        resolve(build_parser(), ["--method", "kgrl_ppo", "--kgrl-search-speed", "0.15", "--device", "cpu",
+                                 "--run-dir", str(tmp_path / "p")])
+    # the guessed quick recipe: --privileged-critic with its prior anchor is the refusal, on a CPU default
+    monkeypatch.setattr(runtime, "device_error", lambda device, flag="--device": None)
+    monkeypatch.setattr(runtime, "default_device", lambda: "cpu")
+    with pytest.raises(ConfigError, match="--privileged-critic with the prior anchor"):
+        run("--method", "kgrl", "--kgrl-search-press", "2.5", "--privileged-critic", device=())
+    assert run("--method", "kgrl", "--kgrl-search-press", "2.5", device=()).kgrl_search_press_mm == 2.5
+    monkeypatch.setattr(runtime, "default_device", lambda: "cuda:0")
+    with pytest.raises(ConfigError, match="--kgrl-search-press sets the blind spiral search .* not of the prior"):
+        run("--method", "kgrl", "--kgrl-search-press", "2.5", device=())
+    # build_action_path: the base gets the run's search values
+    seen = {}
+    monkeypatch.setattr(evaluation, "base_controller", lambda name, path, task, **kw: seen.update(name=name, **kw))
+    monkeypatch.setattr("vkgrl_newton.run.build.prior_tables", lambda cfg, log=print: (prior_tables(), None))
+    cfg = RunConfig(method="kgrl", kgrl_base="centre_search", kgrl_search_speed_mm=0.15, kgrl_search_press_mm=2.5,
+                    reach_floor_mm=4.0, reach_floor_z_mm=25.0)
+    build_action_path(cfg, fake_env(1), log=lambda *a: None)
+    assert seen == {"name": "centre_search", "search_speed_mm": 0.15, "search_press_mm": 2.5}

@@ -95,7 +95,8 @@ def build_action_path(cfg: RunConfig, env, log=print):
     path = KGRLActionPath(tables, env, reach_floor=1e-3 * cfg.reach_floor_mm, reach_floor_z=1e-3 * cfg.reach_floor_z_mm,
                           time_steps=cfg.kgrl_time_action, seat_press=1e-3 * cfg.seat_press_mm)
     # --kgrl-base (None: a = 0 is the prior), --kgrl-residual-scale
-    base = base_controller(cfg.kgrl_base, path, cfg.task, cfg.kgrl_search_speed_mm, cfg.kgrl_search_press_mm)
+    base = base_controller(cfg.kgrl_base, path, cfg.task, search_speed_mm=cfg.kgrl_search_speed_mm,
+                           search_press_mm=cfg.kgrl_search_press_mm)
     path.set_base(base, cfg.kgrl_residual_scale)
     return path, demos_path
 

@@ -41,6 +41,11 @@ class ConfigError(ValueError):
     """An option (or a checkpoint's configuration) that cannot run: the one line the command line prints."""
 
 
+# envs.evaluation.SearchParams' speed_mm and press_mm, the centre_search base's unless --kgrl-search-speed /
+# --kgrl-search-press (literals: this module loads before torch; tests/test_kgrl_base checks them against it)
+SEARCH_SPEED_MM = 0.3
+SEARCH_PRESS_MM = 1.0
+
 @dataclass(frozen=True)
 class RunConfig:
     """Everything a run is: identity (what a resume must match), plan (what it was asked to do) and
@@ -67,9 +72,11 @@ class RunConfig:
     # a controller of the ceiling under the policy's actions (a residual): centre_search, centre_latent
     kgrl_base: str = "prior"
     kgrl_residual_scale: float = 1.0  # with a base: the policy's actions scaled by it before they are added
-    # with the centre_search base: its spiral's speed along the arc, mm per control step (None: SearchParams' 0.3)
+    # with the centre_search base: its spiral's speed along the arc, mm per control step, and z commanded this far
+    # below the TCP while searching; None: the search's own (SEARCH_SPEED_MM, SEARCH_PRESS_MM; a value given equal
+    # to it is stored as None, so that it is the same run)
     kgrl_search_speed_mm: float | None = None
-    kgrl_search_press_mm: float | None = None  # and z commanded this far below the TCP while searching (None: 1)
+    kgrl_search_press_mm: float | None = None
     # the policy's extra inputs (envs.assembly_env.EnvConfig; deviations from eq. 5.5): the TCP's velocity,
     # and in Factory the smoothed contact force (Forge's observation has it)
     tcp_velocity_obs: bool = False
@@ -278,7 +285,7 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
     ap.add_argument("--kgrl-search-speed", dest="kgrl_search_speed_mm", type=float, default=None, metavar="MM",
                     help="with --kgrl-base centre_search (the residual recipe's kgrl): the blind spiral's speed along "
                          "its arc, mm per control step, in (0, 1]. Default 0.3 (the ceiling's search). At 0.3 the part "
-                         "passes over the hole without dropping in; 0.15 seats 0.609 of PegInsert Factory 4D's paired "
+                         "often passes over the hole without dropping in; 0.15 seats 0.609 of PegInsert Factory 4D's paired "
                          "episodes with a = 0, against 0.258 (docs/results/search_reach_40)")
     ap.add_argument("--kgrl-search-press", dest="kgrl_search_press_mm", type=float, default=None, metavar="MM",
                     help="with --kgrl-base centre_search: z commanded MM below the TCP while the spiral searches, in "
