@@ -533,6 +533,7 @@ def test_the_search_options_defaults_methods_guessed_recipe_and_build(monkeypatc
     plain = run("--method", "kgrl", "--kgrl-recipe", "residual")
     assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-speed", "0.3",
                "--kgrl-search-press", "1") == plain
+    assert RunConfig(kgrl_search_speed_mm=0.3, kgrl_search_press_mm=1.0) == RunConfig()  # however it is built
     with pytest.raises(ConfigError, match="--kgrl-search-press is for the kgrl methods on SAC"):
         run("--method", "sac", "--kgrl-search-press", "2.5")
     with pytest.raises(ConfigError, match="--kgrl-search-speed is for the kgrl methods on SAC"):

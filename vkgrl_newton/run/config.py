@@ -46,6 +46,7 @@ class ConfigError(ValueError):
 SEARCH_SPEED_MM = 0.3
 SEARCH_PRESS_MM = 1.0
 
+
 @dataclass(frozen=True)
 class RunConfig:
     """Everything a run is: identity (what a resume must match), plan (what it was asked to do) and
@@ -115,6 +116,14 @@ class RunConfig:
     overlap: bool | None = None  # None: on for a CPU device
     eager_physics: bool = False
     verbose: bool = False
+
+
+    def __post_init__(self):
+        # a search setting equal to the search's own is the run without it (one meta, one a = 0 cache key)
+        for name, default in (("kgrl_search_speed_mm", SEARCH_SPEED_MM), ("kgrl_search_press_mm", SEARCH_PRESS_MM)):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, None if float(value) == default else float(value))
 
     @property
     def method_row(self) -> Method:
@@ -285,8 +294,8 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
     ap.add_argument("--kgrl-search-speed", dest="kgrl_search_speed_mm", type=float, default=None, metavar="MM",
                     help="with --kgrl-base centre_search (the residual recipe's kgrl): the blind spiral's speed along "
                          "its arc, mm per control step, in (0, 1]. Default 0.3 (the ceiling's search). At 0.3 the part "
-                         "often passes over the hole without dropping in; 0.15 seats 0.609 of PegInsert Factory 4D's paired "
-                         "episodes with a = 0, against 0.258 (docs/results/search_reach_40)")
+                         "often passes over the hole without dropping in; 0.15 seats 0.609 of PegInsert Factory 4D's "
+                         "paired episodes with a = 0, against 0.258 (docs/results/search_reach_40)")
     ap.add_argument("--kgrl-search-press", dest="kgrl_search_press_mm", type=float, default=None, metavar="MM",
                     help="with --kgrl-base centre_search: z commanded MM below the TCP while the spiral searches, in "
                          "(0, 10]. Default 1 (the ceiling's search). 2.5 seats 0.711 of PegInsert Factory 4D's paired "

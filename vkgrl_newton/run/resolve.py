@@ -19,9 +19,8 @@ from ..agents.ppo_config import METHOD_PPO_DEFAULTS, parse_ppo_overrides, ppo_tr
 from ..agents.sac_config import SACConfig
 from ..cache import check_run_files
 from ..tasks import geometry_error
-from .config import (RUN_FILES, SEARCH_PRESS_MM, SEARCH_SPEED_MM, ConfigError, RunConfig, check_scalars,
-                     default_run_dir, explicit_args, kgrl_recipe, parse_sac_overrides, prior_table_flags,
-                     sac_config_for, search_without_z_reach, unavailable)
+from .config import (RUN_FILES, ConfigError, RunConfig, check_scalars, default_run_dir, explicit_args, kgrl_recipe,
+                     parse_sac_overrides, prior_table_flags, sac_config_for, search_without_z_reach, unavailable)
 from .methods import METHODS, names
 from .presets import (EVAL_MIN_EPISODES, KGRL_RECIPES, PPO_RUNNER_ONLY, RUN_DEFAULTS, default_kgrl_recipe,
                       recipe_options)
@@ -462,8 +461,7 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         preset=ns.preset, time_obs=not ns.no_time_obs, geometry=ns.geometry, label=ns.label,
         privileged_critic=bool(ns.privileged_critic), kgrl_time_action=int(ns.kgrl_time_action or 0),
         kgrl_base=ns.kgrl_base or "prior", kgrl_residual_scale=float(ns.kgrl_residual_scale or 1.0),
-        kgrl_search_speed_mm=_search_setting(ns.kgrl_search_speed_mm, SEARCH_SPEED_MM),
-        kgrl_search_press_mm=_search_setting(ns.kgrl_search_press_mm, SEARCH_PRESS_MM),
+        kgrl_search_speed_mm=ns.kgrl_search_speed_mm, kgrl_search_press_mm=ns.kgrl_search_press_mm,
         tcp_velocity_obs=bool(ns.tcp_velocity_obs), force_obs=bool(ns.force_obs), obs_history=int(ns.obs_history or 0),
         vision_probe_obs=bool(ns.vision_probe_obs), vision_probe_fit=ns.vision_probe_fit or "images", probe=ns.probe,
         kgrl_recipe=ns.kgrl_recipe if METHODS[ns.method].takes_recipe else None,
@@ -474,11 +472,6 @@ def _to_config(ns, payload: dict | None) -> RunConfig:
         cache_dir=ns.cache_dir,
         progress=not ns.no_progress, overlap=ns.overlap, eager_physics=bool(ns.eager_physics),
         verbose=bool(ns.verbose), **changes)
-
-
-def _search_setting(value, default: float) -> float | None:
-    """A --kgrl-search-* value; None where it is the search's own (the same run as without the option)."""
-    return None if value is None or float(value) == default else float(value)
 
 
 def _with_cpu_matmul(ns, config: RunConfig, payload: dict | None) -> RunConfig:
