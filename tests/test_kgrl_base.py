@@ -241,12 +241,12 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
     tiny = [*TINY_RUN, "--cpu-matmul", "torch"]
     # the base through the residual recipe (its options filled in by resolve, as the test below checks)
     argv = ["--method", "kgrl", "--kgrl-recipe", "residual", "--run-dir", str(run_dir), "--eval-episodes", "0",
-            "--cache-dir", str(tmp_path / "cache"), "--num-demos", "2", "--kgrl-search-press", "2.5", *tiny]
+            "--cache-dir", str(tmp_path / "cache"), "--num-demos", "2", *tiny]
     assert load_script("run").main([*argv, "--total-steps", "16"]) == 0
     config = json.loads((run_dir / "config.json").read_text())
     assert (config["kgrl_base"], config["kgrl_residual_scale"], config["kgrl_recipe"]) == ("centre_search", 0.2,
                                                                                           "residual")
-    assert config["kgrl_search_press_mm"] == 2.5
+    assert config["kgrl_search_press_mm"] == 2.5  # the recipe's
     # a resume keeps the run's base and recipe (given again or not) and refuses another
     assert load_script("run").main(["--resume", "--run-dir", str(run_dir), "--total-steps", "32", "--no-progress"]) == 0
     assert json.loads((run_dir / "config.json").read_text()) == {**config, "total_steps": 32}
@@ -259,6 +259,15 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
         load_script("run").main(["--resume", "--run-dir", str(run_dir), "--kgrl-search-press", "1.5", "--total-steps",
                                  "48", "--no-progress"])
     assert refused.value.code == 2 and "kgrl_search_press_mm" in capsys.readouterr().err
+    # a run of the recipe before its press was 2.5 (its meta without a press: 1 mm, the search's own) resumes at 1 mm
+    old_dir = tmp_path / "press_one"
+    old_argv = [*argv, "--kgrl-search-press", "1"]
+    old_argv[old_argv.index(str(run_dir))] = str(old_dir)
+    assert load_script("run").main([*old_argv, "--total-steps", "16"]) == 0
+    old_config = json.loads((old_dir / "config.json").read_text())
+    assert "kgrl_search_press_mm" not in old_config and old_config["kgrl_recipe"] == "residual"
+    assert load_script("run").main(["--resume", "--run-dir", str(old_dir), "--total-steps", "32", "--no-progress"]) == 0
+    assert json.loads((old_dir / "config.json").read_text()) == {**old_config, "total_steps": 32}
     out = tmp_path / "eval.json"
     assert load_script("evaluate").main(["--checkpoint", str(run_dir / "checkpoints" / "last.pt"), "--num-envs", "2",
                                          "--episodes", "1", "--device", "cpu", "--json", str(out),
@@ -267,9 +276,10 @@ def test_a_run_on_a_base_trains_resumes_and_its_checkpoint_evaluates_on_it(wp_cp
 
 
 def test_the_residual_recipe_is_the_measured_options_and_gives_way_to_given_ones(tmp_path):
-    """--kgrl-recipe residual (run.presets): the RunConfig of docs/results/base_floor4_40's arms, which gave the
-    options one by one on reach_keep_prior, but for the recipe's name; an option given wins, one whose prerequisite is
-    given otherwise is left out, what cannot go with the recipe is refused naming it; the gym id's config is run.py's."""
+    """--kgrl-recipe residual (run.presets): the RunConfig of docs/results/base_floor4_40's arms (kgrl's with
+    search_reach_40's firmer press), which gave the options one by one on reach_keep_prior, but for the recipe's
+    name; an option given wins, one whose prerequisite is given otherwise is left out, what cannot go with the recipe
+    is refused naming it; the gym id's config is run.py's."""
     import dataclasses
 
     from vkgrl_newton.run.config import ConfigError, build_parser
@@ -281,7 +291,7 @@ def test_the_residual_recipe_is_the_measured_options_and_gives_way_to_given_ones
                                         "torch", "--cache-dir", str(tmp_path)]).config
 
     floors = ["--kgrl-residual-scale", "0.2", "--kgrl-seat-press", "5", "--kgrl-reach-floor", "4"]
-    measured = {"kgrl": ["--kgrl-base", "centre_search", *floors],
+    measured = {"kgrl": ["--kgrl-base", "centre_search", "--kgrl-search-press", "2.5", *floors],
                 "vision_kgrl": ["--vision-probe-obs", "--vision-probe-fit", "closed_loop", "--kgrl-base", "centre_latent",
                                 *floors]}
     for method, options in measured.items():
@@ -292,13 +302,22 @@ def test_the_residual_recipe_is_the_measured_options_and_gives_way_to_given_ones
         assert recipe.meta()["kgrl_recipe"] == "residual" and recipe.reach_floor_z_mm == 25.0
         kw = {f: getattr(recipe, f) for f in ("kgrl_base", "kgrl_residual_scale", "vision_probe_obs",
                                               "vision_probe_fit", "seat_press_mm", "reach_floor_mm", "reach_floor_z_mm",
-                                              "kgrl_recipe", "latent_dim", "obs_dim")}
+                                              "kgrl_recipe", "latent_dim", "obs_dim", "kgrl_search_press_mm")}
         gym = gym_config("PegInsert", "factory", 4, method, device="cpu", cache_dir=tmp_path, kgrl_recipe="residual")
         assert {f: getattr(gym, f) for f in kw} == kw, method
     assert run("--method", "vision_kgrl", "--kgrl-recipe", "residual").kgrl_base == "centre_latent"
     # given options win; a residual scale without a base, or a probe fit without the probe, is not filled in
     on_prior = run("--method", "vision_kgrl", "--kgrl-recipe", "residual", "--kgrl-base", "prior")
     assert (on_prior.kgrl_base, on_prior.kgrl_residual_scale, on_prior.vision_probe_obs) == ("prior", 1.0, True)
+    # nor the blind spiral's press off its base; the press given wins, 1 mm being the search's own (the recipe's
+    # before docs/results/search_reach_40), which the meta leaves out as for any run at the search's defaults
+    blind_on_prior = run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-base", "prior")
+    assert (blind_on_prior.kgrl_base, blind_on_prior.kgrl_search_press_mm) == ("prior", None)
+    assert run("--method", "kgrl", "--kgrl-recipe", "residual").kgrl_search_press_mm == 2.5
+    at_one = run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-press", "1")
+    assert at_one.kgrl_search_press_mm is None and "kgrl_search_press_mm" not in at_one.meta()
+    assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-speed", "0.15").kgrl_search_speed_mm \
+        == 0.15
     assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-residual-scale", "0.5",
                "--kgrl-reach-floor", "3").kgrl_residual_scale == 0.5
     assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-reach-floor", "3").reach_floor_mm == 3.0
@@ -511,9 +530,10 @@ def test_the_blind_bases_spiral_runs_at_the_given_speed_and_press(wp_cpu, tmp_pa
 
 def test_the_search_options_defaults_methods_guessed_recipe_and_build(monkeypatch, tmp_path):
     """The search options' defaults are SearchParams' for every task, and a value given equal to one is the run
-    without the option; a method without a base is refused as --kgrl-base is; with neither --device nor --preset the
-    refusal another option causes is that option's, and on a CUDA default (the thesis preset: a = 0 the prior) the
-    search option is refused; build_action_path hands the run's values to the base."""
+    without the option (the residual recipe's press given is the recipe's run); a method without a base is refused as
+    --kgrl-base is; with neither --device nor --preset the refusal another option causes is that option's, and on a
+    CUDA default (the thesis preset: a = 0 the prior) the search option is refused; build_action_path hands the run's
+    values to the base."""
     from vkgrl_newton import runtime
     from vkgrl_newton.envs import evaluation
     from vkgrl_newton.envs.evaluation import task_search_params
@@ -530,9 +550,12 @@ def test_the_search_options_defaults_methods_guessed_recipe_and_build(monkeypatc
         return resolve(build_parser(), [*argv, *device, "--run-dir", str(tmp_path / "r"), "--cpu-matmul", "torch",
                                         "--cache-dir", str(tmp_path)]).config
 
-    plain = run("--method", "kgrl", "--kgrl-recipe", "residual")
+    plain = run("--method", "kgrl", "--kgrl-recipe", "residual")  # (its press the recipe's 2.5, its speed the search's)
     assert run("--method", "kgrl", "--kgrl-recipe", "residual", "--kgrl-search-speed", "0.3",
-               "--kgrl-search-press", "1") == plain
+               "--kgrl-search-press", "2.5") == plain
+    on_by_hand = run("--method", "kgrl", "--kgrl-recipe", "reach_keep_prior", "--kgrl-base", "centre_search")
+    assert run("--method", "kgrl", "--kgrl-recipe", "reach_keep_prior", "--kgrl-base", "centre_search",
+               "--kgrl-search-speed", "0.3", "--kgrl-search-press", "1") == on_by_hand
     assert RunConfig(kgrl_search_speed_mm=0.3, kgrl_search_press_mm=1.0) == RunConfig()  # however it is built
     with pytest.raises(ConfigError, match="--kgrl-search-press is for the kgrl methods on SAC"):
         run("--method", "sac", "--kgrl-search-press", "2.5")

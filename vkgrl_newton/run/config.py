@@ -298,18 +298,19 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                          "paired episodes with a = 0, against 0.258 (docs/results/search_reach_40)")
     ap.add_argument("--kgrl-search-press", dest="kgrl_search_press_mm", type=float, default=None, metavar="MM",
                     help="with --kgrl-base centre_search: z commanded MM below the TCP while the spiral searches, in "
-                         "(0, 10]. Default 1 (the ceiling's search). 2.5 seats 0.711 of PegInsert Factory 4D's paired "
-                         "episodes with a = 0, against 0.258 (docs/results/search_reach_40)")
+                         "(0, 10]. Default: the residual recipe's 2.5, else 1 (the ceiling's search). 2.5 seats "
+                         "0.711 of PegInsert Factory 4D's paired episodes with a = 0, against 0.258 at 1 "
+                         "(docs/results/search_reach_40)")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),
                     help=f"{names(takes_recipe=True)}: the defaults under --sac, the reach floors and the seat press: "
                          "reach_keep_prior (the quick preset's but on PegInsert Factory 4D: beats the prior on paired "
                          "episodes, docs/results.md), "
                          "base (the thesis preset's: the thesis's null space; the quick default until issue 28) or "
                          "residual (reach_keep_prior's learner on a fixed controller as a = 0, scaled 0.2, with 4 mm "
-                         "floors and the seat pressed 5 mm: --kgrl-base centre_search for kgrl, centre_latent with "
-                         "--vision-probe-obs --vision-probe-fit closed_loop for vision_kgrl; options given win; "
-                         "the quick preset's on PegInsert Factory 4D, docs/results/recipe_40). Default: the preset's, or on "
-                         "--resume the run's")
+                         "floors and the seat pressed 5 mm: --kgrl-base centre_search --kgrl-search-press 2.5 for "
+                         "kgrl, centre_latent with --vision-probe-obs --vision-probe-fit closed_loop for vision_kgrl; "
+                         "options given win; the quick preset's on PegInsert Factory 4D, docs/results/recipe_40). "
+                         "Default: the preset's, or on --resume the run's")
     ap.add_argument("--ppo", metavar="KEY=VALUE", action="append", default=[],
                     help="ppo methods: override an rsl-rl PPO setting by its dotted path, e.g. --ppo "
                          "num_steps_per_env=32 --ppo algorithm.learning_rate=3e-4 (default: Isaac Lab Factory's, "

@@ -206,6 +206,8 @@ def _fill_recipe_options(ns, preset: str) -> tuple[str, ...]:
             continue
         if option == "vision_probe_fit" and not ns.vision_probe_obs:
             continue
+        if option.startswith("kgrl_search_") and ns.kgrl_base != "centre_search":  # the spiral's, on another base
+            continue
         setattr(ns, option, value)
         filled.append(option)
     return tuple(filled)
