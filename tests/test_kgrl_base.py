@@ -518,6 +518,9 @@ def test_the_blind_bases_spiral_runs_at_the_given_speed_and_press(wp_cpu, tmp_pa
                               eager_physics=False, policy=None)
     assert evaluation_config(args, {"meta": cfg.meta()}).kgrl_search_speed_mm == 0.15
     assert evaluation_config(args, {"meta": both.meta()}).kgrl_search_press_mm == 2.5
+    # a residual run from before the recipe's 2.5 (no press in its meta) is rebuilt at the search's own 1 mm
+    old_meta = {k: v for k, v in both.meta().items() if k != "kgrl_search_press_mm"}
+    assert evaluation_config(args, {"meta": old_meta}).kgrl_search_press_mm is None
     key_env = SimpleNamespace(num_envs=2, device="cpu", cfg=SimpleNamespace(vision_latent_dim=0))
     tables = SimpleNamespace(tables=SimpleNamespace(mean=torch.zeros(3, 6), gain=torch.zeros(3, 6, 6)))
     assert prior_evaluation_key(RunConfig(method="kgrl", kgrl_base="centre_search", kgrl_search_speed_mm=0.15),

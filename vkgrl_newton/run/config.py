@@ -295,10 +295,10 @@ def build_parser(doc: str | None = None) -> argparse.ArgumentParser:
                     help="with --kgrl-base centre_search (the residual recipe's kgrl): the blind spiral's speed along "
                          "its arc, mm per control step, in (0, 1]. Default 0.3 (the ceiling's search). At 0.3 the part "
                          "often passes over the hole without dropping in; 0.15 seats 0.609 of PegInsert Factory 4D's "
-                         "paired episodes with a = 0, against 0.258 (docs/results/search_reach_40)")
+                         "paired episodes with a = 0 pressing 1 mm, against 0.258 (docs/results/search_reach_40)")
     ap.add_argument("--kgrl-search-press", dest="kgrl_search_press_mm", type=float, default=None, metavar="MM",
                     help="with --kgrl-base centre_search: z commanded MM below the TCP while the spiral searches, in "
-                         "(0, 10]. Default: the residual recipe's 2.5, else 1 (the ceiling's search). 2.5 seats "
+                         "(0, 10]. Default: 2.5 under kgrl's residual recipe, else 1 (the ceiling's search). 2.5 seats "
                          "0.711 of PegInsert Factory 4D's paired episodes with a = 0, against 0.258 at 1 "
                          "(docs/results/search_reach_40)")
     ap.add_argument("--kgrl-recipe", default=None, choices=sorted(KGRL_RECIPES),

@@ -1,7 +1,8 @@
 """The residual recipe against the quick preset's default (reach_keep_prior), seed by seed on the same 128 episodes
 and the same machine (issue 40: "what wins becomes the quick preset's recipe"). The recipe's runs are
-docs/results/base_floor4_40's (the same options given one by one; `--kgrl-recipe residual` is that RunConfig, tests/
-test_kgrl_base.py); the default's are this folder's report. Student-t over seeds, sign and Wilcoxon tests
+docs/results/base_floor4_40's (the same options given one by one; `--kgrl-recipe residual` was that RunConfig, tests/
+test_kgrl_base.py; kgrl's is `--kgrl-recipe residual --kgrl-search-press 1` since 46bd6e0); the default's are this
+folder's report. Student-t over seeds, sign and Wilcoxon tests
 (vkgrl_newton.results.seeds.over_seeds); each run's own a = 0 beside it.
 
     python docs/results/recipe_40/analyse.py        (finished seeds only)
