@@ -271,3 +271,47 @@ def test_status_into_a_closed_pipe_ends_quietly(tmp_path):
         os.close(write_end)
     assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr, proc.stderr
     assert proc.returncode == 0
+
+
+def test_a_restart_from_another_commit_is_refused_unless_code_moved_says_so(sweep_py, tmp_path):
+    """A sweep records the commit it starts at; started again from another commit (its trials still to run would
+    train on other code) it is refused in one line naming both, before anything runs, unless --code-moved, which
+    sweep.json records; --status and a sweep from before the record had a commit are not refused."""
+    from vkgrl_newton.sweep import checkout_commit
+
+    git = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if git.returncode != 0:
+        pytest.skip("not a git checkout: a sweep records no commit here")
+    head = git.stdout.strip()
+    assert checkout_commit(ROOT) == head and checkout_commit(tmp_path) is None
+    out = tmp_path / "sweep"
+    grid = {"tasks": ["PegInsert"], "envs": ["factory"], "action_dims": [4], "methods": ["sac"], "seeds": [0]}
+    run_dir = Path(sweep_py.trials_of(grid, out)[0]["run_dir"])
+    run_dir.mkdir(parents=True)
+    (run_dir / "metrics.json").write_text(json.dumps({"training": {"transitions": 900}}))  # the trial is done
+    other = "0123456789ab" + "0" * 28
+    record = {"grid": grid, "run_args": [], "trials": 1, "created": "2026-12-07 13:00:00", "commit": other}
+    (out / "sweep.json").write_text(json.dumps(record))
+
+    def sweep(*flags):
+        return subprocess.run([sys.executable, str(ROOT / "train" / "sweep.py"), "--out", str(out), *flags],
+                              cwd=ROOT, capture_output=True, text=True, timeout=300)
+
+    refused = sweep()
+    assert refused.returncode == 2, refused.stderr
+    last = refused.stderr.strip().splitlines()[-1]
+    assert f"started at commit {other[:12]}" in last and f"this checkout is at {head[:12]}" in last and \
+        "--code-moved" in last, refused.stderr
+    assert json.loads((out / "sweep.json").read_text()) == record  # nothing written
+    assert sweep("--status").returncode == 0
+    moved = sweep("--code-moved")
+    assert moved.returncode == 0, moved.stderr
+    after = json.loads((out / "sweep.json").read_text())
+    assert [(m["from"], m["to"]) for m in after["code_moved"]] == [(other, head)]
+    assert {k: v for k, v in after.items() if k != "code_moved"} == record
+    assert sweep().returncode == 0  # the last move's commit is this one
+    (out / "sweep.json").write_text(json.dumps({k: v for k, v in record.items() if k != "commit"}))
+    assert sweep().returncode == 0  # a sweep from before the commit was recorded
+    (out / "sweep.json").write_text(json.dumps({**record, "commit": 7}))
+    damaged = sweep()
+    assert damaged.returncode == 2 and "sweep.json is damaged (commit is not a string)" in damaged.stderr

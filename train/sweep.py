@@ -33,7 +33,10 @@ storage into its own layout. Restartable:
   trials already finished are not run again. A retry on the host where the previous attempt's
   run.py still runs (it got SIGTERM from its dead worker and finishes its step) waits for it to
   stop first;
-- killing the driver leaves the trials' checkpoints; starting it again continues the rest.
+- killing the driver leaves the trials' checkpoints; starting it again continues the rest;
+- sweep.json records the commit the sweep started at: started again from another commit, whose code the trials
+  still to run would train on, it is refused unless --code-moved (recorded in sweep.json). Run a study from a
+  checkout that does not move under it (a worktree at its commit). Uncommitted changes are not seen.
 Shared prerequisites (KGRL's demonstrations and KMP tables, the vision methods' image sets and
 VAEs) are made by the first trial that needs them, under vkgrl_newton/cache.py's file locks:
 never by two trials at once, the others wait and reuse them. On a cluster --cache-dir (passed to
@@ -64,8 +67,8 @@ from vkgrl_newton.run.methods import RUN_METHODS, THESIS_METHODS as METHODS  # n
 from vkgrl_newton.tasks import ACTION_DIMS  # noqa: E402
 from vkgrl_newton.tasks import FAMILIES as ENVS  # noqa: E402
 from vkgrl_newton.tasks import TASKS as TASK_SPECS  # noqa: E402
-from vkgrl_newton.sweep import (TrialProcessDied, log_tail, read_trial_state, run_trial, trial_status,  # noqa: E402
-                                write_trial_state)
+from vkgrl_newton.sweep import (TrialProcessDied, checkout_commit, log_tail, read_trial_state, run_trial,  # noqa: E402
+                                trial_status, write_trial_state)
 
 RUN_PY = ROOT / "train" / "run.py"
 TASKS = tuple(TASK_SPECS)
@@ -192,6 +195,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-retries", type=int, default=2,
                     help="restarts of a trial whose process, Ray worker or node died (default 2)")
     ap.add_argument("--status", action="store_true", help="print one line per trial and exit")
+    ap.add_argument("--code-moved", action="store_true",
+                    help="continue a sweep although this checkout is at another commit than the one it started at "
+                         "(its sweep.json's): the trials still to run then train on this code, and sweep.json records "
+                         "the move. Without it such a restart is refused: a study runs from a commit that does not "
+                         "move under it (e.g. a worktree at that commit)")
     ap.add_argument("--no-progress", action="store_true")
     return ap
 
@@ -244,6 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(why)
     record_path = args.out / "sweep.json"
     given_grid = args.grid is not None or any(getattr(args, a) is not None for a in AXES)
+    moved = None
     if record_path.exists():
         try:
             record = read_json_object(record_path, "sweep record")
@@ -252,6 +261,12 @@ def main(argv: list[str] | None = None) -> int:
             validate_grid(record["grid"])  # what trials_of indexes below
             if not isinstance(record["run_args"], list) or not all(isinstance(a, str) for a in record["run_args"]):
                 raise ValueError("run_args is not a list of strings")
+            if not isinstance(record.get("commit", ""), (str, type(None))):
+                raise ValueError("commit is not a string")
+            moves = record.get("code_moved", [])
+            if not isinstance(moves, list) or not all(isinstance(m, dict) and isinstance(m.get("to"), str)
+                                                      for m in moves):
+                raise ValueError("code_moved is not a list of {from, to, at}")
         except ValueError as e:
             ap.error(one_line(f"--out {args.out}: its sweep.json is damaged ({e}); restore it or choose another "
                               "directory", 500))
@@ -261,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
                 ap.error(f"--out {args.out} holds another sweep (grid {record['grid']}, run arguments "
                          f"{record['run_args']}); run it again with just --out, or choose another directory")
         grid, run_args = record["grid"], record["run_args"]
+        moved = _code_moved(record, args, ap, record_path)
     elif args.status:
         ap.error(f"--out {args.out} holds no sweep (no sweep.json)")
     elif not given_grid:
@@ -281,7 +297,12 @@ def main(argv: list[str] | None = None) -> int:
     if not record_path.exists():
         args.out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(record_path, json.dumps({"grid": grid, "run_args": run_args, "trials": len(trials),
-                                                   "created": time.strftime("%Y-%m-%d %H:%M:%S")}, indent=2))
+                                                   "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+                                                   "commit": checkout_commit(ROOT)}, indent=2))
+    elif moved is not None:  # --code-moved: the record says from when on the trials ran other code
+        record.setdefault("code_moved", []).append({"from": moved[0], "to": moved[1],
+                                                    "at": time.strftime("%Y-%m-%d %H:%M:%S")})
+        atomic_write_text(record_path, json.dumps(record, indent=2), overwrite=True)  # (a rename: whole or not)
     trial_args = list(run_args)
     if args.cpus_per_trial <= 1 and "--overlap" not in run_args and "--no-overlap" not in run_args:
         trial_args.append("--no-overlap")  # one core: a second thread only contends
@@ -290,6 +311,26 @@ def main(argv: list[str] | None = None) -> int:
     if not todo:
         return print_status(trials)
     return run_sweep(args, todo, trials, trial_args)
+
+
+def _code_moved(record: dict, args, ap, record_path: Path) -> tuple[str, str] | None:
+    """A restart from another commit than the sweep's last (its sweep.json's "commit", or its last --code-moved):
+    refused unless --code-moved, which returns (from, to). None when the code is the same or unknown (a sweep from
+    before the record had a commit, or a checkout outside git); --status reads files only and is never refused."""
+    if args.status:
+        return None
+    last = record["code_moved"][-1]["to"] if record.get("code_moved") else record.get("commit")
+    now = checkout_commit(ROOT)
+    if not last or not now or last == now:
+        return None
+    if not args.code_moved:
+        ap.error(f"--out {args.out} was started at commit {last[:12]} ({record_path}) and this checkout is at "
+                 f"{now[:12]}: its trials still to run would train on other code than those done. Continue it from "
+                 f"a checkout at {last[:12]} (git worktree add DIR {last[:12]}), or pass --code-moved to run the rest "
+                 "on this code")
+    print(f"train/sweep.py: --code-moved: the trials still to run train on {now[:12]}, not {last[:12]} "
+          "(recorded in sweep.json)", flush=True)
+    return last, now
 
 
 def run_sweep(args, todo: list[dict], trials: list[dict], trial_args: list[str]) -> int:

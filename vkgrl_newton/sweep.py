@@ -51,6 +51,19 @@ def _die_with_parent() -> None:
         return  # killed worker there, so a retry can run beside it; Linux is what this project runs on
 
 
+def checkout_commit(root: Path) -> str | None:
+    """The git commit checked out at `root` (the code a sweep's trials run), or None outside a git checkout or
+    without git. Uncommitted changes are not part of it."""
+    try:
+        done = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=60)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    commit = done.stdout.strip()
+    return commit if done.returncode == 0 and len(commit) == 40 and all(c in "0123456789abcdef" for c in commit) \
+        else None
+
+
 # ----------------------------------------------------------------------------- trial state on disk
 def read_trial_state(run_dir: Path) -> dict:
     """The trial's trial.json ({} when it has none); ValueError in one line naming it when damaged."""
