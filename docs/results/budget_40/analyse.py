@@ -28,11 +28,16 @@ from vkgrl_newton.results.seeds import format_t, format_tests, over_seeds  # noq
 KEPT = HERE / "kept"  # kept/<arm>/seed<S>/at_<N>.json: evaluate.py's results for the kept policies
 REPORT = HERE / "report" / "runs"  # train/report.py's copies of the 200k runs
 AT_30K = HERE.parent / "base_floor4_40" / "report_seeds0-9" / "runs"
-ARMS = {  # this study's run name, base_floor4_40's name of the same RunConfig at 30k, the thesis's level at ~1M
+ARMS = {  # this study's run name, the runs of the same RunConfig at 30k, the thesis's level at ~1M
     "vision_kgrl": ("PegInsert_factory_4d_vision_kgrl+residual",
-                    "PegInsert_factory_4d_vision_kgrl+base_cl_seat5_floor4_s0.2", 0.993),
-    "kgrl": ("PegInsert_factory_4d_kgrl+residual", "PegInsert_factory_4d_kgrl+base_centre_search_seat5_floor4_s0.2",
-             0.797),
+                    AT_30K / "PegInsert_factory_4d_vision_kgrl+base_cl_seat5_floor4_s0.2", 0.993),
+    # the press-1 recipe (before 46bd6e0): paused for the firmer search, one seed finished
+    "kgrl": ("PegInsert_factory_4d_kgrl+residual",
+             AT_30K / "PegInsert_factory_4d_kgrl+base_centre_search_seat5_floor4_s0.2", 0.797),
+    # the residual recipe since 46bd6e0 (its blind search pressing 2.5 mm): the kgrl arm of item 5
+    "kgrl_press": ("PegInsert_factory_4d_kgrl+residual_press2.5",
+                   HERE.parent / "search_reach_40" / "report_seeds0-9" / "runs" /
+                   "PegInsert_factory_4d_kgrl+residual_press2.5", 0.797),
 }
 CEILING = 1.0  # the privileged oracle and the scripted demonstrator on these 128 episodes (docs/results/ceiling_40)
 CACHE = ROOT / "runs" / "cache"  # (the cache the runs were trained with: their prior, VAE and probe)
@@ -61,9 +66,10 @@ def evaluate(sweeps: list[Path]) -> None:
 
 
 def points(arm: str) -> tuple[dict[int, dict[int, np.ndarray]], dict[int, np.ndarray]]:
-    """{transitions: {seed: per-episode success}} over the kept policies, the 200k finals and the 30k runs; and
-    {seed: a = 0's per-episode success} (the base controller, from the runs' metrics.json)."""
-    name, name_30k, _ = ARMS[arm]
+    """{transitions: {seed: per-episode success}} over the kept policies, the 200k finals and the 30k runs of the
+    seeds this study ran; and {seed: a = 0's per-episode success} (the base controller, from the runs' metrics.json:
+    the 200k run's, else the 30k run's of the same RunConfig, whose a = 0 is the same controller)."""
+    name, at_30k, _ = ARMS[arm]
     by_budget: dict[int, dict[int, np.ndarray]] = {}
     a0: dict[int, np.ndarray] = {}
     for run in sorted((REPORT / name).glob("seed*")):
@@ -74,11 +80,13 @@ def points(arm: str) -> tuple[dict[int, dict[int, np.ndarray]], dict[int, np.nda
     for f in sorted((KEPT / name).glob("seed*/at_*.json")):
         n = int(f.stem[3:])
         by_budget.setdefault(n, {})[int(f.parent.name[4:])] = success(json.loads(f.read_text())["per_episode"])
-    for run in sorted((AT_30K / name_30k).glob("seed*")):
+    ran = {seed for runs in by_budget.values() for seed in runs}
+    for run in sorted(at_30k.glob("seed*")):
         seed = int(run.name[4:])
-        if seed in a0:  # the seeds this study ran
+        if seed in ran:  # the seeds this study ran
             m = json.loads((run / "metrics.json").read_text())
             by_budget.setdefault(int(m["training"]["transitions"]), {})[seed] = success(m["per_episode"])
+            a0.setdefault(seed, success(m["prior_eval"]["per_episode"]))
     return dict(sorted(by_budget.items())), a0
 
 
@@ -90,7 +98,7 @@ def analyse() -> None:
     for arm, (name, _, thesis) in ARMS.items():
         by_budget, a0 = points(arm)
         if not a0:
-            lines.append(f"\n{arm}: no finished 200k run yet")
+            lines.append(f"\n{arm}: no kept policy or finished 200k run yet")
             continue
         base = np.mean([v.mean() for v in a0.values()])
         lines.append(f"\n{arm} ({name}): a = 0 (its base controller) {base:.3f}; the thesis {thesis:.3f} at ~1M")
