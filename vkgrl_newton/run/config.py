@@ -45,6 +45,9 @@ class ConfigError(ValueError):
 # --kgrl-search-press (literals: this module loads before torch; tests/test_kgrl_base checks them against it)
 SEARCH_SPEED_MM = 0.3
 SEARCH_PRESS_MM = 1.0
+# the RunConfig fields of the centre_search base's settings and the search's own value of each: None in a RunConfig
+# (and absent from the meta and a = 0's cache key) where the run searches at that value
+SEARCH_SETTINGS = {"kgrl_search_speed_mm": SEARCH_SPEED_MM, "kgrl_search_press_mm": SEARCH_PRESS_MM}
 
 
 @dataclass(frozen=True)
@@ -117,10 +120,9 @@ class RunConfig:
     eager_physics: bool = False
     verbose: bool = False
 
-
     def __post_init__(self):
         # a search setting equal to the search's own is the run without it (one meta, one a = 0 cache key)
-        for name, default in (("kgrl_search_speed_mm", SEARCH_SPEED_MM), ("kgrl_search_press_mm", SEARCH_PRESS_MM)):
+        for name, default in SEARCH_SETTINGS.items():
             value = getattr(self, name)
             if value is not None:
                 object.__setattr__(self, name, None if float(value) == default else float(value))
@@ -212,7 +214,7 @@ class RunConfig:
             meta["kgrl_base"] = self.kgrl_base
         if self.kgrl_residual_scale != 1.0:  # likewise
             meta["kgrl_residual_scale"] = self.kgrl_residual_scale
-        for name in ("kgrl_search_speed_mm", "kgrl_search_press_mm"):  # likewise
+        for name in SEARCH_SETTINGS:  # likewise
             if getattr(self, name) is not None:
                 meta[name] = getattr(self, name)
         for name in ("tcp_velocity_obs", "force_obs", "vision_probe_obs"):  # likewise

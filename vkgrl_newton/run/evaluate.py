@@ -11,7 +11,7 @@ from pathlib import Path
 from ..cache import check_run_files
 from ..results.paired import seed_evaluation
 from ..tasks import geometry_error
-from .config import ConfigError, RunConfig
+from .config import SEARCH_SETTINGS, ConfigError, RunConfig
 from .methods import METHODS
 
 __all__ = ["POLICIES", "KMP_POLICIES", "checkpoint_config", "evaluation_config", "make_policy", "evaluate_policy"]
@@ -102,8 +102,7 @@ def evaluation_config(args, payload: dict | None) -> RunConfig:
                      vae=Path(meta["vision"]["vae"]) if "vision" in meta else None,
                      kgrl_time_action=meta.get("kgrl_time_action", 0), kgrl_base=meta.get("kgrl_base", "prior"),
                      kgrl_residual_scale=meta.get("kgrl_residual_scale", 1.0),
-                     kgrl_search_speed_mm=meta.get("kgrl_search_speed_mm"),
-                     kgrl_search_press_mm=meta.get("kgrl_search_press_mm"),
+                     **{name: meta.get(name) for name in SEARCH_SETTINGS},  # absent: the search's own
                      tcp_velocity_obs=meta.get("tcp_velocity_obs", False),
                      force_obs=meta.get("force_obs", False), vision_probe_obs=meta.get("vision_probe_obs", False),
                      vision_probe_fit=meta.get("vision_probe_fit", "images"),

@@ -22,7 +22,7 @@ from ..results.curves import CurveWriter
 from ..results.paired import cached_evaluation, format_gain, paired_gain, seed_evaluation, world_outcomes
 from ..signals import describe, exit_code, stop_line, where
 from .build import Built, build_action_path, build_agent, build_encoder, build_env, build_probe, build_rollout_policy
-from .config import RunConfig
+from .config import SEARCH_SETTINGS, RunConfig
 from .loops import Loop, ppo_loop, restore_rng, rng_state, sac_loop
 
 __all__ = ["train", "final_evaluation", "prior_evaluation_key", "paired_line", "run_meta_with_files"]
@@ -300,7 +300,7 @@ def prior_evaluation_key(cfg: RunConfig, env, action_path) -> dict:
         key["force_obs"] = True
     if cfg.kgrl_base != "prior":  # a base steers through the null space: the gain (the reach floors) decides it too
         key["prior_gain_sha256"] = hashlib.sha256(action_path.tables.gain.numpy().tobytes()).hexdigest()
-    for name in ("kgrl_search_speed_mm", "kgrl_search_press_mm"):  # the blind base's spiral search
+    for name in SEARCH_SETTINGS:  # the blind base's spiral search
         if getattr(cfg, name) is not None:
             key[name] = getattr(cfg, name)
     if cfg.kgrl_base == "centre_latent":
