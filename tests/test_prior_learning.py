@@ -416,6 +416,30 @@ def test_cached_evaluation_computes_once_per_key_and_restores_nan(tmp_path):
     assert not reused and len(calls) == 3 and json.loads(file.read_text())["result"]["success_rate"] == 0.25
 
 
+def test_cached_evaluation_is_per_processor(tmp_path, monkeypatch):
+    """An evaluation made on one CPU is not reused on a CPU of another model (their float32 rounding seats other
+    episodes): the cache keys on runtime.processor_name of the key's device, and the stored key names it."""
+    import vkgrl_newton.runtime as runtime
+    from vkgrl_newton.results.paired import cached_evaluation
+
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"success_rate": float(len(calls))}
+
+    key = {"task": "PegInsert", "device": "cpu"}
+    monkeypatch.setattr(runtime, "cpu_model", lambda: "Intel(R) Xeon(R) Processor")
+    intel, _ = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
+    monkeypatch.setattr(runtime, "cpu_model", lambda: "AMD EPYC")
+    amd, reused = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
+    assert (intel["success_rate"], amd["success_rate"], reused) == (1.0, 2.0, False)
+    again, reused = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
+    assert (again["success_rate"], reused, len(calls)) == (2.0, True, 2)
+    stored = sorted(json.loads(f.read_text())["key"]["processor"] for f in (tmp_path / "evaluations").glob("*.json"))
+    assert stored == ["AMD EPYC", "Intel(R) Xeon(R) Processor"]
+
+
 def test_behaviour_cloning_term_against_a_float64_computation():
     """actor_loss with the prior buffer's actions adds bc_weight * mean|Q| * mean |tanh(mean) - a|^2
     over the last rows alone (TD3+BC's scaling), on the same draw of the policy's sample."""

@@ -9,7 +9,7 @@ import sys
 from .cli_types import add_verbose_flag, stderr_without  # noqa: F401  (add_verbose_flag: a name of this module too)
 
 __all__ = ["default_device", "torch_device", "configure_warp", "add_verbose_flag", "parse_cli", "device_error",
-           "cpu_model"]
+           "cpu_model", "processor_name"]
 
 # what Warp's native init prints on a machine without a GPU; nothing a CPU run can act on
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
@@ -29,6 +29,18 @@ def cpu_model() -> str:
         if line.startswith("model name"):
             return line.split(":", 1)[1].strip()
     return platform.processor() or platform.machine() or "unknown"
+
+
+def processor_name(device: str = "cpu") -> str:
+    """The processor that runs `device`'s kernels: the CPU's model name for "cpu", the GPU's name for a CUDA
+    device. Results name it, and cached evaluations key on it, because float32 rounding differs between CPU vendors
+    and tips chaotic contact outcomes: the same episodes seat differently on an Intel and an AMD CPU
+    (docs/results/intel_prior_40), so an evaluation made on one machine is not this machine's."""
+    if str(device).startswith("cuda"):
+        import warp as wp
+
+        return wp.get_device(str(device)).name
+    return cpu_model()
 
 
 def default_device() -> str:

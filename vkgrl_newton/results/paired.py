@@ -12,8 +12,10 @@ removes the between-episode variance the two share: a start both solve or both m
 
 `cached_evaluation(cache_dir, key, compute)`: an evaluation that only its inputs and the code decide
 (a KGRL run's prior, a = 0, on the episodes of an eval seed: the same for every training seed and
-variant of a configuration) is computed once and reused; the key holds every input and a digest of
-the package's sources, so a changed env, kernel or scene evaluates anew.
+variant of a configuration) is computed once and reused; the key holds every input, a digest of
+the package's sources, so a changed env, kernel or scene evaluates anew, and the processor of the
+key's device, so a cache copied to a machine of another CPU vendor (whose float32 rounding seats
+other episodes) evaluates anew too.
 """
 
 from __future__ import annotations
@@ -127,12 +129,15 @@ def cached_evaluation(cache_dir, key: dict, compute, log=print, what: str = "the
     """(compute(), False) the first time for `key` (a JSON-able dict of every input), (the stored
     result, True) after: the file `cache_dir/evaluations/<sha>.json` (strict JSON; its NaN, stored as
     null, come back as NaN: no field of an `evaluate` result is None). Made under the entry's lock
-    (vkgrl_newton.cache): runs that start together evaluate once. A damaged file is evaluated anew."""
+    (vkgrl_newton.cache): runs that start together evaluate once. A damaged file, or one of another
+    processor (`processor_name` of the key's device), is evaluated anew."""
     from .._io import atomic_write_text, strict_json
     from ..cache import entry_lock
     from ..signals import phase
 
-    full = {**key, "source_digest": source_digest()}
+    from ..runtime import processor_name
+
+    full = {**key, "source_digest": source_digest(), "processor": processor_name(key.get("device", "cpu"))}
     digest = hashlib.sha256(json.dumps(full, sort_keys=True).encode()).hexdigest()
     path = Path(cache_dir) / "evaluations" / f"{digest[:24]}.json"
     with entry_lock(path, log=log, what=what):

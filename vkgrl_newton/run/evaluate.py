@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ..cache import check_run_files
 from ..results.paired import seed_evaluation
+from ..runtime import processor_name
 from ..tasks import geometry_error
 from .config import SEARCH_SETTINGS, ConfigError, RunConfig
 from .methods import METHODS
@@ -177,7 +178,8 @@ def evaluate_policy(args, payload: dict | None) -> dict:
     result = evaluate(env, policy, args.episodes, video_frames=frames, camera=camera,
                       desc=f"{args.policy} {args.env} {args.action_dim}D")
     result.update(task=args.task, env=args.env, action_dim=args.action_dim, policy=args.policy,
-                  num_envs=args.num_envs, device=env.device, solver=args.solver, geometry=args.geometry, seed=args.seed,
+                  num_envs=args.num_envs, device=env.device, processor=processor_name(env.device), solver=args.solver,
+                  geometry=args.geometry, seed=args.seed,
                   eval_seed=args.eval_seed, stochastic=args.stochastic,
                   time_obs=not args.no_time_obs, checkpoint=str(args.checkpoint) if args.checkpoint else None)
     if hasattr(getattr(policy, "agent", None), "cpu_matmul"):  # the SAC products' library that ran

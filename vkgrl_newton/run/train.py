@@ -20,6 +20,7 @@ import time
 from .._io import atomic_write_text, strict_json
 from ..results.curves import CurveWriter
 from ..results.paired import cached_evaluation, format_gain, paired_gain, seed_evaluation, world_outcomes
+from ..runtime import processor_name
 from ..signals import describe, exit_code, stop_line, where
 from .build import Built, build_action_path, build_agent, build_encoder, build_env, build_probe, build_rollout_policy
 from .config import SEARCH_SETTINGS, RunConfig
@@ -217,7 +218,8 @@ def _finish(cfg: RunConfig, built: Built, meta: dict, loop: Loop, payload: dict 
               f"{cfg.ckpt_path} is kept (--resume evaluates)", file=sys.stderr)
         return exit_code(e)
     writer.close()
-    result = {**metrics, **meta, "device": built.env.device, "checkpoint": str(cfg.ckpt_path), "training": summary}
+    result = {**metrics, **meta, "device": built.env.device, "processor": processor_name(built.env.device),
+              "checkpoint": str(cfg.ckpt_path), "training": summary}
     result.pop("sac", None)
     result.pop("ppo", None)
     if hasattr(built.agent, "cpu_matmul"):  # the SAC products' library that ran (config.json: the SACConfig's)
