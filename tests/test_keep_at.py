@@ -176,7 +176,7 @@ def test_evaluate_py_scores_a_checkpoint_on_the_runs_own_evaluation_episodes(run
     # each names the processor that played its episodes (outcomes pair only on the same kind of CPU)
     from vkgrl_newton.runtime import cpu_model
 
-    assert metrics["processor"] == again["processor"] == cpu_model()
+    assert metrics["processor"] == again["processor"] and metrics["processor"].startswith(cpu_model())
     for a, b in zip(again["per_episode"], metrics["per_episode"]):
         assert a["world_success"] == b["world_success"]
         # the same float32 physics and policy on the same machine: equal up to float32 summation order over an

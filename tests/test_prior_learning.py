@@ -429,15 +429,41 @@ def test_cached_evaluation_is_per_processor(tmp_path, monkeypatch):
         return {"success_rate": float(len(calls))}
 
     key = {"task": "PegInsert", "device": "cpu"}
-    monkeypatch.setattr(runtime, "cpu_model", lambda: "Intel(R) Xeon(R) Processor")
-    intel, _ = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
-    monkeypatch.setattr(runtime, "cpu_model", lambda: "AMD EPYC")
-    amd, reused = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
-    assert (intel["success_rate"], amd["success_rate"], reused) == (1.0, 2.0, False)
+    zen3, zen4 = "AMD EPYC (family 25 model 1)", "AMD EPYC (family 25 model 17)"
+    monkeypatch.setattr(runtime, "processor_name", lambda device: zen4)
+    first, _ = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
+    monkeypatch.setattr(runtime, "processor_name", lambda device: zen3)
+    other, reused = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
+    assert (first["success_rate"], other["success_rate"], reused) == (1.0, 2.0, False)
     again, reused = cached_evaluation(tmp_path, key, compute, log=lambda m: None)
     assert (again["success_rate"], reused, len(calls)) == (2.0, True, 2)
     stored = sorted(json.loads(f.read_text())["key"]["processor"] for f in (tmp_path / "evaluations").glob("*.json"))
-    assert stored == ["AMD EPYC", "Intel(R) Xeon(R) Processor"]
+    assert stored == [zen3, zen4]
+
+
+def test_processor_name_tells_cpu_models_apart(tmp_path, monkeypatch):
+    """A cloud CPU's model name is masked ("AMD EPYC" on a Zen 3 and a Zen 4 alike): processor_name adds
+    /proc/cpuinfo's family and model numbers (read here from a file in that format), keeps the name alone where
+    there are none, and names a CUDA device by the GPU."""
+    import types
+
+    import warp as wp
+
+    import vkgrl_newton.runtime as runtime
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
+                    "model name\t: AMD EPYC\n\nprocessor\t: 1\ncpu family\t: 99\nmodel\t\t: 99\n")
+    assert runtime._cpuinfo_fields("cpu family", "model", path=str(info)) == {"cpu family": "25", "model": "17"}
+    assert runtime._cpuinfo_fields("model", path=str(tmp_path / "none")) == {}
+    monkeypatch.setattr(runtime, "cpu_model", lambda: "AMD EPYC")
+    for numbers, name in (({"cpu family": "25", "model": "1"}, "AMD EPYC (family 25 model 1)"),
+                          ({"cpu family": "25", "model": "17"}, "AMD EPYC (family 25 model 17)"),
+                          ({}, "AMD EPYC")):
+        monkeypatch.setattr(runtime, "_cpuinfo_fields", lambda *names, n=numbers: n)
+        assert runtime.processor_name("cpu") == name
+    monkeypatch.setattr(wp, "get_device", lambda d: types.SimpleNamespace(name=f"NVIDIA H100 as {d}"))
+    assert runtime.processor_name("cuda:0") == "NVIDIA H100 as cuda:0"
 
 
 def test_behaviour_cloning_term_against_a_float64_computation():

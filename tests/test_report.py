@@ -217,15 +217,17 @@ def test_prior_gain_table_from_paired_runs(report_py, tmp_path):
 
 def test_method_pairs_difference_methods_on_the_same_episodes(report_py, tmp_path):
     """Labelled variants with known per-episode outcomes: B minus A per seed that both ran on the same
-    episodes (left out: a seed only one ran, a seed evaluated with another eval seed, a variant with
-    another world count; the episodes either side lost to a blow-up, NaN), its mean over seeds, and all paired episodes
+    episodes (left out: a seed only one ran, a seed evaluated with another eval seed or on another processor, a
+    variant with another world count; the episodes either side lost to a blow-up, NaN), its mean over seeds, and all
+    paired episodes
     pooled, against a hand computation; a run from before per-world outcomes were recorded pairs with
     nothing (and does not stop the report)."""
     root = tmp_path / "sweep"
     outcomes = {"a": {0: [1, 0, 0, 0], 1: [0, 0, 0, 0], 2: [1, 1, 0, 0], 3: [1, 1, 1, 1], 5: [1, 1, 0, 0]},
-                "b": {0: [1, 1, NAN, 0], 1: [1, 1, 1, 0], 2: [1, 1, 1, 1], 4: [0, 0, 0, 0]},
+                "b": {0: [1, 1, NAN, 0], 1: [1, 1, 1, 0], 2: [1, 1, 1, 1], 4: [0, 0, 0, 0], 5: [0, 0, 1, 1]},
                 "c": {0: [1, 1, 1, 1]}, "d": {0: [1, 1, 1, 1], 1: [0, 0, 0, 0]}}
     eval_seeds = {("a", 2): 7}  # seed 2 of a on other episodes than b's
+    processors = {("b", 5): "AMD EPYC (family 25 model 1)"}  # seed 5 of b played on another CPU than a's (unnamed)
     num_envs = {"d": 4}  # d: 4 worlds x 1 round, 4 outcomes as a's and b's, but other episodes
     for label, runs in outcomes.items():
         for seed, outcome in runs.items():
@@ -240,6 +242,8 @@ def test_method_pairs_difference_methods_on_the_same_episodes(report_py, tmp_pat
                 rounds = [{"world_success": outcome[:2]}, {"world_success": outcome[2:]}]
                 m.update(per_episode=[{"world_success": outcome}] if label in num_envs else rounds,
                          eval_seed=eval_seeds.get((label, seed), 10000))
+                if (label, seed) in processors:
+                    m["processor"] = processors[(label, seed)]
             (d / "metrics.json").write_text(strict_json(m))  # (as run.py writes it: a lost episode, NaN, is null)
     out = tmp_path / "report"
     report_py.main([str(root), "--out", str(out), "--reps", "500"])

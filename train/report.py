@@ -363,8 +363,10 @@ def load_cells(run_dirs: list[Path]) -> dict[tuple, list[dict]]:
             # its final evaluation's episodes, for pairing with other methods (runs from before per-world
             # outcomes and evaluation seeds were recorded have none to pair)
             row["outcomes"] = world_outcomes(metrics)
+            # and the processor that played them: an Intel and an AMD CPU seat different episodes of one eval seed
+            # (docs/results/intel_prior_40); a run from before the field pairs only with another such run
             row["episodes_key"] = (metrics["eval_seed"], config.get("num_envs"), len(metrics["per_episode"]),
-                                   row["outcomes"].size)
+                                   row["outcomes"].size, metrics.get("processor"))
         if "paired_gain" in metrics:  # a KGRL run's paired evaluation against its prior (run.py)
             row["paired"] = {"gain": metrics["paired_gain"]["success_rate"],
                              "prior_success": metrics["prior_eval"]["success_rate"],
@@ -608,7 +610,7 @@ def prior_gain_markdown(rows: list[dict]) -> str:
 def method_pair_rows(cells: dict, reps: int) -> list[dict]:
     """Per task, env and D, each two methods (variants included) on the same evaluation episodes: B minus A
     in success, per seed run by both on the same episodes (one evaluation seed, world count and round
-    count; each seed's difference over the episodes both counted), their mean with a percentile-bootstrap
+    count, played on one kind of processor; each seed's difference over the episodes both counted), their mean with a percentile-bootstrap
     interval over seeds, and all those seeds' episodes pooled. A before B in the report's method order.
     Runs that recorded no per-world outcomes or evaluation seed (older runs) are not paired."""
     rows = []
@@ -619,7 +621,7 @@ def method_pair_rows(cells: dict, reps: int) -> list[dict]:
         for i, key_a in enumerate(keys):
             for key_b in keys[i + 1:]:
                 by_seed_a = {r["seed"]: r for r in cells[key_a] if "outcomes" in r}
-                # the same episodes: one evaluation seed, worlds and rounds
+                # the same episodes: one evaluation seed, worlds and rounds, played on one kind of processor
                 pairs = [(by_seed_a[r["seed"]], r) for r in cells[key_b] if "outcomes" in r and r["seed"] in by_seed_a
                          and r["episodes_key"] == by_seed_a[r["seed"]]["episodes_key"]]
                 # per seed over the episodes both counted (a blown-up world's is NaN), as the pooled figure;

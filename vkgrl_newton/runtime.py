@@ -32,15 +32,35 @@ def cpu_model() -> str:
 
 
 def processor_name(device: str = "cpu") -> str:
-    """The processor that runs `device`'s kernels: the CPU's model name for "cpu", the GPU's name for a CUDA
-    device. Results name it, and cached evaluations key on it, because float32 rounding differs between CPU vendors
-    and tips chaotic contact outcomes: the same episodes seat differently on an Intel and an AMD CPU
-    (docs/results/intel_prior_40), so an evaluation made on one machine is not this machine's."""
+    """The processor that runs `device`'s kernels: for "cpu" the CPU's model name with its family and model
+    numbers (a cloud machine's model name is masked: "AMD EPYC" names a Zen 3 and a Zen 4 alike, whose instruction
+    sets, and so Warp's `-march=native` kernels, differ), the GPU's name for a CUDA device. Results name it, and
+    cached evaluations key on it, because float32 results differ between CPU models and tip chaotic contact
+    outcomes: the same episodes seat differently on an Intel and an AMD CPU (docs/results/intel_prior_40), so an
+    evaluation made on one machine is not another's."""
     if str(device).startswith("cuda"):
         import warp as wp
 
         return wp.get_device(str(device)).name
-    return cpu_model()
+    numbers = _cpuinfo_fields("cpu family", "model")
+    if len(numbers) < 2:  # no /proc/cpuinfo (not Linux) or no numbers there: the name alone
+        return cpu_model()
+    return f"{cpu_model()} (family {numbers['cpu family']} model {numbers['model']})"
+
+
+def _cpuinfo_fields(*names: str, path: str = "/proc/cpuinfo") -> dict[str, str]:
+    """The first value of each of `names` in /proc/cpuinfo ({} where there is no such file)."""
+    try:
+        with open(path) as f:
+            lines = f.readlines()
+    except OSError:
+        return {}
+    out: dict[str, str] = {}
+    for line in lines:
+        name, _, value = line.partition(":")
+        if name.strip() in names and name.strip() not in out:
+            out[name.strip()] = value.strip()
+    return out
 
 
 def default_device() -> str:

@@ -14,7 +14,7 @@ removes the between-episode variance the two share: a start both solve or both m
 (a KGRL run's prior, a = 0, on the episodes of an eval seed: the same for every training seed and
 variant of a configuration) is computed once and reused; the key holds every input, a digest of
 the package's sources, so a changed env, kernel or scene evaluates anew, and the processor of the
-key's device, so a cache copied to a machine of another CPU vendor (whose float32 rounding seats
+key's device, so a cache copied to a machine of another CPU model (whose float32 results seat
 other episodes) evaluates anew too.
 """
 
@@ -133,9 +133,8 @@ def cached_evaluation(cache_dir, key: dict, compute, log=print, what: str = "the
     processor (`processor_name` of the key's device), is evaluated anew."""
     from .._io import atomic_write_text, strict_json
     from ..cache import entry_lock
-    from ..signals import phase
-
     from ..runtime import processor_name
+    from ..signals import phase
 
     full = {**key, "source_digest": source_digest(), "processor": processor_name(key.get("device", "cpu"))}
     digest = hashlib.sha256(json.dumps(full, sort_keys=True).encode()).hexdigest()
@@ -144,7 +143,7 @@ def cached_evaluation(cache_dir, key: dict, compute, log=print, what: str = "the
         if path.exists():
             stored = _stored_result(path, full)
             if stored is not None:
-                log(f"{what}: reused {path} (same inputs and sources)")
+                log(f"{what}: reused {path} (same inputs, sources and processor)")
                 return stored, True
             log(f"{what}: {path} is damaged or of other inputs; evaluating anew")
         with phase(f"computing {what}", "none of it is cached: the next run computes it anew"):

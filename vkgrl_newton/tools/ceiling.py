@@ -474,7 +474,7 @@ def main(argv=None) -> int:
         if why:
             ap.error(why)
 
-    from ..runtime import configure_warp, cpu_model
+    from ..runtime import configure_warp, cpu_model, processor_name
 
     configure_warp()
     import torch
@@ -493,6 +493,7 @@ def main(argv=None) -> int:
            "episodes_per_world": args.episodes_per_world, "eval_seed": args.eval_seed, "seed": args.seed,
            "perturb_kp_ulp": args.perturb_kp_ulp, "demos_kp_ulp": args.demos_kp_ulp,
            "oracle_lateral_noise_mm": args.oracle_lateral_noise_mm, "demos": str(demos), "cpu": cpu,
+           "processor": processor_name(),
            "command": "python -m "
            "vkgrl_newton.tools.ceiling " + " ".join(sys.argv[1:] if argv is None else argv),
            "thresholds_mm": {"catch": 1e3 * CEILING_GEOMETRY[args.task].catch,
