@@ -55,6 +55,7 @@ ARMS = {  # this study's run name, the Intel runs of the same RunConfig at 30k, 
                    HERE.parent / "search_reach_40" / "report_seeds0-9" / "runs" /
                    "PegInsert_factory_4d_kgrl+residual_press2.5", 0.797),
 }
+BUDGETS = (30_000, 50_000, 100_000, 150_000, 200_000)  # the points of the curve
 CEILING = 1.0  # the privileged oracle and the scripted demonstrator on these 128 episodes (docs/results/ceiling_40)
 CACHE = ROOT / "runs" / "cache"  # (the cache the runs were trained with: their prior, VAE and probe)
 
@@ -116,7 +117,9 @@ def points(arm: str) -> tuple[dict[int, dict[tuple, np.ndarray]], dict[tuple, np
             if m.get("processor", machine) != machine:
                 sys.exit(f"analyse.py: {run} ran on {m['processor']}, not {machine}, the machine of its report")
             key = (machine, int(run.name[4:]))
-            by_budget.setdefault(int(m["training"]["transitions"]), {})[key] = success(m["per_episode"])
+            n = int(m["training"]["transitions"])
+            if n in BUDGETS:  # (a run finished early, at a session's end, gives its a = 0 but no budget point)
+                by_budget.setdefault(n, {})[key] = success(m["per_episode"])
             a0[key] = success(m["prior_eval"]["per_episode"])
     for f in sorted((KEPT / name).glob("*seed*/at_*.json")):
         result = json.loads(f.read_text())
