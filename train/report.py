@@ -610,8 +610,9 @@ def prior_gain_markdown(rows: list[dict]) -> str:
 def method_pair_rows(cells: dict, reps: int) -> list[dict]:
     """Per task, env and D, each two methods (variants included) on the same evaluation episodes: B minus A
     in success, per seed run by both on the same episodes (one evaluation seed, world count and round
-    count, played on one kind of processor; each seed's difference over the episodes both counted), their mean with a percentile-bootstrap
-    interval over seeds, and all those seeds' episodes pooled. A before B in the report's method order.
+    count, played on one kind of processor; each seed's difference over the episodes both counted), their
+    mean with a percentile-bootstrap interval over seeds, and all those seeds' episodes pooled. A before B
+    in the report's method order.
     Runs that recorded no per-world outcomes or evaluation seed (older runs) are not paired."""
     rows = []
     groups: dict[tuple, list[tuple]] = defaultdict(list)

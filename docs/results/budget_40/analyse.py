@@ -213,7 +213,8 @@ def plot(arm: str, by_budget: dict, a0: dict, kmp: dict[str, np.ndarray], thesis
     for i, (machine, (short, _, _)) in enumerate(MACHINES.items()):
         color, word = f"C{2 * i}", machine.split(" (")[0].replace("(R)", "")
         curves = []
-        for run in sorted(run for report, m in REPORTS.items() if m == machine for run in (report / name).glob("seed*")):
+        runs = [run for report, m in REPORTS.items() if m == machine for run in (report / name).glob("seed*")]
+        for run in sorted(runs):
             rows = [json.loads(x) for x in (run / "curves.jsonl").read_text().splitlines() if x.strip()]
             t = np.array([r["transitions"] for r in rows], dtype=float)
             x = np.array([r["success_rate"] for r in rows], dtype=float)
@@ -243,7 +244,8 @@ def plot(arm: str, by_budget: dict, a0: dict, kmp: dict[str, np.ndarray], thesis
         if machine in kmp:
             ax.axhline(kmp[machine].mean(), color=color, ls=":", lw=1,
                        label=f"{word}: KMP prior {kmp[machine].mean():.3f}")
-    for y, text, ls in ((CEILING, "privileged oracle and demonstrator (ceiling_40)", "-"), (thesis, "thesis (~1M)", "-.")):
+    for y, text, ls in ((CEILING, "privileged oracle and demonstrator (ceiling_40)", "-"),
+                        (thesis, "thesis (~1M)", "-.")):
         ax.axhline(y, color="k", ls=ls, lw=1, label=f"{text} {y:.3f}")
     ax.set(xlabel="transitions", ylabel="success rate", ylim=(0, 1.02), title=f"PegInsert Factory 4D, {arm}")
     ax.legend(fontsize=6, loc="lower right")
