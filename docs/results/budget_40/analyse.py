@@ -106,8 +106,9 @@ def label(key: tuple[str, int]) -> str:
 def points(arm: str) -> tuple[dict[int, dict[tuple, np.ndarray]], dict[tuple, np.ndarray]]:
     """{transitions: {(machine, seed): per-episode success}} over the kept policies, the finished runs and the 30k
     runs of the Intel seeds this study ran; and {(machine, seed): a = 0's per-episode success} (the base controller,
-    from the runs' metrics.json: the finished run's, else the Intel 30k run's of the same RunConfig, whose a = 0 is
-    the same controller on the same machine)."""
+    from the runs' metrics.json: the finished run's, else the Intel 30k run's of the same RunConfig, else another
+    seed's finished run on the same machine: a = 0 is the same controller there, whatever the training seed). A
+    finished run's final policy is a point only at one of BUDGETS (not a run finished early at a session's end)."""
     name, at_30k, _ = ARMS[arm]
     by_budget: dict[int, dict[tuple, np.ndarray]] = {}
     a0: dict[tuple, np.ndarray] = {}
