@@ -20,15 +20,8 @@ def cpu_model() -> str:
     every speed figure and the CPU matmul choice (agents/matmul_backend.py) name their machine by."""
     import platform
 
-    try:
-        with open("/proc/cpuinfo") as f:
-            lines = f.readlines()
-    except OSError:  # no /proc/cpuinfo (not Linux): platform's name below
-        lines = []
-    for line in lines:
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine() or "unknown"
+    # (no /proc/cpuinfo, not Linux: platform's name)
+    return _cpuinfo_fields("model name").get("model name") or platform.processor() or platform.machine() or "unknown"
 
 
 def processor_name(device: str = "cpu") -> str:
