@@ -43,7 +43,8 @@ MACHINES = {  # per machine: its short name, its seed directories' prefix under 
 # train/report.py's copies of the finished runs, by the machine that trained and evaluated them (these runs trained
 # at commits whose metrics.json did not name the processor yet)
 REPORTS = {HERE / "report" / "runs": INTEL, HERE / "report_amd" / "runs": AMD,
-           HERE / "report_amd_100k" / "runs": AMD}  # (the AMD 100k runs: report.py keeps one plan per directory)
+           HERE / "report_amd_100k" / "runs": AMD,  # (the AMD 100k runs: report.py keeps one plan per directory)
+           HERE / "report_amd_vision_100k" / "runs": AMD}
 AT_30K = HERE.parent / "base_floor4_40" / "report_seeds0-9" / "runs"
 ARMS = {  # this study's run name, the Intel runs of the same RunConfig at 30k, the thesis's level at ~1M
     "vision_kgrl": ("PegInsert_factory_4d_vision_kgrl+residual",
